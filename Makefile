@@ -1,0 +1,46 @@
+# Two commands on a fresh machine: `make demo` (run the default scene) and `make test`.
+# Each builds .venv first when it is missing or when the pins changed.
+VENV    := .venv
+PY      := $(VENV)/bin/python
+STAMP   := $(VENV)/.installed
+OUT     ?= out/demo
+PYTEST_ARGS ?=
+export OMP_NUM_THREADS ?= 1
+export OPENBLAS_NUM_THREADS ?= 1
+export NUMBA_CACHE_DIR ?= $(CURDIR)/.cache/numba
+
+.PHONY: venv demo test test-all lint typecheck bench paper clean lock
+
+venv: $(STAMP)
+
+$(STAMP): requirements.lock pyproject.toml tools/find_python.sh
+	@set -e; py=$$(tools/find_python.sh); \
+	echo "creating $(VENV) with $$py"; \
+	[ -x $(PY) ] || $$py -m venv $(VENV); \
+	$(PY) -m pip install -q --upgrade pip; \
+	$(PY) -m pip install -q -r requirements.lock; \
+	$(PY) -m pip install -q --no-deps --no-build-isolation -e .; \
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/wrinkles run scenes/default.toml --out $(OUT)
+
+test: $(STAMP)
+	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
+
+test-all: $(STAMP)
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check models solvers meshes wrinkles tests benchmarks
+	$(VENV)/bin/mypy
+
+bench: $(STAMP)
+	$(PY) benchmarks/shell_kernels.py
+	$(PY) benchmarks/shell_solve.py
+
+lock: $(STAMP)
+	$(PY) -m pip freeze --exclude-editable | grep -v '^wrinkles' > requirements.lock.new && mv requirements.lock.new requirements.lock
+
+clean:
+	rm -rf out .cache .pytest_cache

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dolfinx_solver  # noqa: F401  (must precede mpi4py, petsc4py and dolfinx)
 
 import basix  # noqa: E402
+import basix.ufl  # noqa: E402
 import dolfinx  # noqa: E402
 import dolfinx.fem  # noqa: E402
 import dolfinx.fem.petsc  # noqa: E402
@@ -21,6 +22,63 @@ import ufl  # noqa: E402
 from mpi4py import MPI  # noqa: E402
 from petsc4py import PETSc  # noqa: E402
 
-__all__ = ["MPI", "PETSc", "basix", "dolfinx", "ufl", "DOLFINX_VERSION"]
+__all__ = ["MPI", "PETSc", "basix", "dolfinx", "ufl", "DOLFINX_VERSION", "mesh_from_arrays",
+           "vector_space", "global_scalar", "quadrature_expression", "global_min_on_cells"]
 
 DOLFINX_VERSION: str = dolfinx.__version__
+
+
+# --- body helpers (dolfinx-0.11-specific calls used by models/body.py) ------------------------
+
+def mesh_from_arrays(comm: MPI.Comm, points: object, tets: object) -> dolfinx.mesh.Mesh:
+    """Build a distributed P1 tetrahedral mesh; rank 0 holds the arrays, others pass empty ones.
+
+    Args:
+        comm: Communicator of the mesh.
+        points: ``(n, 3)`` float64 vertex coordinates (``(0, 3)`` on ranks other than 0).
+        tets: ``(m, 4)`` int64 vertex indices of the tetrahedra (``(0, 4)`` off rank 0).
+
+    Returns:
+        The mesh, partitioned over ``comm`` by dolfinx's default graph partitioner.
+
+    """
+    import numpy as np
+
+    x = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    cells = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
+    domain = ufl.Mesh(basix.ufl.element("Lagrange", "tetrahedron", 1, shape=(3,)))
+    return dolfinx.mesh.create_mesh(comm, cells, domain, x)
+
+
+def vector_space(mesh: dolfinx.mesh.Mesh, degree: int) -> dolfinx.fem.FunctionSpace:
+    """Vector Lagrange space of ``degree`` with one 3-vector per node (block size 3)."""
+    return dolfinx.fem.functionspace(mesh, ("Lagrange", degree, (mesh.geometry.dim,)))
+
+
+def global_scalar(form: dolfinx.fem.Form) -> float:
+    """Assemble a compiled scalar form and sum it over the ranks of its mesh."""
+    local = dolfinx.fem.assemble_scalar(form)
+    return float(form.mesh.comm.allreduce(local, op=MPI.SUM))
+
+
+def quadrature_expression(expr: object, mesh: dolfinx.mesh.Mesh,
+                          degree: int) -> dolfinx.fem.Expression:
+    """Compile a UFL expression for evaluation at the degree-``degree`` quadrature points."""
+    points, _ = basix.make_quadrature(mesh.basix_cell(), degree)
+    return dolfinx.fem.Expression(expr, points)
+
+
+def global_min_on_cells(expression: dolfinx.fem.Expression, mesh: dolfinx.mesh.Mesh) -> float:
+    """Minimum of a compiled expression over all points of all owned cells, over all ranks.
+
+    NaN values (e.g. ``det F`` of a NaN field) count as ``-inf`` so that they are never
+    mistaken for a valid state.
+    """
+    import numpy as np
+
+    n_local = mesh.topology.index_map(mesh.topology.dim).size_local
+    values = expression.eval(mesh, np.arange(n_local, dtype=np.int32))
+    local = float(np.min(values)) if values.size else float("inf")
+    if not np.all(np.isfinite(values)):
+        local = float("-inf")
+    return float(mesh.comm.allreduce(local, op=MPI.MIN))

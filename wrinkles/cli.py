@@ -1,8 +1,145 @@
-"""Command-line interface (placeholder until the scene runner lands)."""
+"""Command-line interface: ``wrinkles run SCENE.toml [--out DIR] [--frames N] [--set k=v ...]``.
+
+Exit codes: 0 ok; 1 bad input (``InputError``: one line ``error: <message>`` on stderr, no
+traceback; also bad command-line usage); 2 solver failure (``SolverError``: the frames done so
+far stay on disk) or an unexpected exception (a bug: its traceback is printed).
+
+Under MPI every rank runs the same code. Errors raised on all ranks (scene validation, mesh
+errors broadcast from rank 0, solver failures, which are collective) end the run with the
+error's exit code after rank 0 prints the message. An error raised on some ranks only cannot
+be agreed on while the others wait in a collective call: after ``AGREE_SECONDS`` without
+agreement the failing rank prints its message and calls ``MPI_Abort`` with the exit code.
+"""
 
 from __future__ import annotations
 
+import argparse
+import os
+import sys
+import time
+import traceback
+from collections.abc import Sequence
+from pathlib import Path
+from typing import NoReturn
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``wrinkles`` console script."""
-    raise SystemExit("wrinkles: the scene runner is not built yet")
+from models.errors import InputError, WrinklesError
+
+AGREE_SECONDS = 10.0
+"""How long a failing rank waits for the other ranks to fail too before ``MPI_Abort``."""
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """``argparse`` parser whose usage errors raise ``InputError`` (exit 1, one line)."""
+
+    def error(self, message: str) -> NoReturn:
+        """Raise ``InputError`` instead of printing usage and exiting with status 2."""
+        raise InputError(f"{message} (see '{self.prog} --help')")
+
+
+def build_parser() -> ArgumentParser:
+    """Return the ``wrinkles`` argument parser."""
+    parser = ArgumentParser(prog="wrinkles", description="Embedded thin shells for wrinkle "
+                            "simulation on FEniCSx: run a scene file.")
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
+    run = commands.add_parser("run", help="run a scene file (TOML)")
+    run.add_argument("scene", type=Path, help="scene file, e.g. scenes/default.toml")
+    run.add_argument("--out", type=Path, default=None,
+                     help="output directory (default: out/<scene name>)")
+    run.add_argument("--frames", type=int, default=None, help="number of frames to run "
+                     "(replaces time.frames / time.end_time)")
+    run.add_argument("--set", dest="overrides", action="append", default=[],
+                     metavar="KEY=VALUE", help="override a scene key, value as a TOML "
+                     "literal (repeatable), e.g. --set material.E=2e4")
+    return parser
+
+
+def one_line(message: str) -> str:
+    """Collapse a message to one line for stderr."""
+    return " ".join(message.split())
+
+
+def command_run(args: argparse.Namespace) -> int:
+    """Load the scene, apply ``--frames`` and ``--set``, run it (collective)."""
+    from models.backend import MPI
+    from wrinkles.runner import run_scene
+    from wrinkles.scene import load_scene, with_frames
+
+    scene = load_scene(args.scene, args.overrides)
+    if args.frames is not None:
+        scene = with_frames(scene, args.frames)
+    out = args.out if args.out is not None else Path("out") / args.scene.stem
+    run_scene(scene, out, MPI.COMM_WORLD, log=lambda line: print(line, flush=True))
+    return 0
+
+
+def report(exc: BaseException) -> int:
+    """Print the error as the exit-code contract says; return the exit code."""
+    if isinstance(exc, WrinklesError):
+        print(f"error: {one_line(str(exc))}", file=sys.stderr, flush=True)
+        return exc.exit_code
+    traceback.print_exception(exc, file=sys.stderr)
+    print(f"error: unexpected {type(exc).__name__} (a bug, please report it with the "
+          "traceback above)", file=sys.stderr, flush=True)
+    return 2
+
+
+def fail_collectively(exc: BaseException) -> int:
+    """Agree with the other ranks on the failure, or abort them all; return the exit code.
+
+    All ranks failing (the usual case: errors are collective) meet in a non-blocking barrier
+    on a private communicator; rank 0 reports and everyone returns. If the others do not
+    arrive within ``AGREE_SECONDS`` they are stuck elsewhere: report here and ``Abort``.
+    """
+    from models.backend import MPI
+
+    comm = MPI.COMM_WORLD
+    code = exc.exit_code if isinstance(exc, WrinklesError) else 2
+    if comm.size == 1:
+        return report(exc)
+    request = _AGREE_COMM.Ibarrier() if _AGREE_COMM is not None else None
+    deadline = time.monotonic() + AGREE_SECONDS
+    while request is not None and not request.Test():
+        if time.monotonic() > deadline:
+            print(f"[rank {comm.rank}] ", end="", file=sys.stderr)
+            report(exc)
+            comm.Abort(code)
+        time.sleep(0.01)
+    if comm.rank == 0:
+        report(exc)
+    return code
+
+
+_AGREE_COMM = None
+"""Duplicate of COMM_WORLD used only to agree on failures (never mixed with solver traffic)."""
+
+
+def _init_agreement() -> None:
+    """Duplicate COMM_WORLD for :func:`fail_collectively` (collective, once per process)."""
+    global _AGREE_COMM
+    from models.backend import MPI
+
+    if MPI.COMM_WORLD.size > 1 and _AGREE_COMM is None:
+        _AGREE_COMM = MPI.COMM_WORLD.Dup()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``wrinkles`` console script; return the exit code."""
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    try:
+        args = build_parser().parse_args(argv)
+    except InputError as exc:
+        return report(exc)
+    try:
+        _init_agreement()
+        return command_run(args)
+    except Exception as exc:  # noqa: BLE001  (mapped to exit codes, see module doc)
+        return fail_collectively(exc)
+
+
+def entry() -> NoReturn:
+    """Run :func:`main` and exit with its code (``python -m wrinkles``)."""
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    entry()

@@ -1,0 +1,490 @@
+"""The coarse hyperelastic body: one UFL energy, statics and implicit dynamics, pins, contact.
+
+Every step minimises one incremental potential (Ortiz & Stainier 1999; Kane et al. 2000)
+
+    Pi(u) = int_Omega psi(F(u)) dX                                   (materials.py)
+          + int_Omega rho c / 2 |u - u_pred|^2 dX                    (inertia, dynamics only)
+          - int_Omega rho g.u dX                                     (gravity)
+          + sum_obstacles int_dOmega k/2 <g(X + u)>_-^2 dA           (contact.py)
+
+with, for a step of length h from (u_n, v_n, a_n):
+    implicit Euler:  c = 1/h^2,       u_pred = u_n + h v_n;                v = (u - u_n)/h
+    Newmark (beta = 1/4, gamma = 1/2, average acceleration):
+                     c = 1/(beta h^2), u_pred = u_n + h v_n + h^2 (1/2 - beta) a_n,
+                     a = c (u - u_pred),  v = v_n + h ((1 - gamma) a_n + gamma a).
+The stationarity of Pi is the time-discrete momentum balance, so the residual and the
+Jacobian are ``ufl.derivative`` of Pi and the Newton line search can evaluate Pi itself.
+
+Pins (``PinSpec``) hold selected components of selected nodes at
+``value + velocity * t``: a moving pin compresses or stretches the body over time. In
+statics, ``t`` is the load parameter and a step advances it by ``dt``. A failed step is
+retried with half the step (time step or load increment), ``NewtonOptions.max_halvings``
+times, from the last good state; then ``SolverError`` is raised with that state restored.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from models.backend import (
+    MPI,
+    dolfinx,
+    global_scalar,
+    ufl,
+    vector_space,
+)
+from models.contact import ContactOptions, PenaltyContact, _vector3
+from models.errors import InputError, SolverError
+from models.materials import Material
+from solvers.body_newton import EnergyNewton, NewtonOptions, NewtonResult
+
+DYNAMICS: tuple[str, ...] = ("static", "implicit_euler", "newmark")
+NEWMARK_BETA: float = 0.25
+NEWMARK_GAMMA: float = 0.5
+
+
+@dataclass(frozen=True)
+class PinSpec:
+    """A set of nodes whose displacement components are prescribed.
+
+    A node at reference position ``X`` is selected by a box when
+    ``box_min - tol <= X <= box_max + tol`` componentwise, by a plane when
+    ``|(X - point).normal| <= tol``. Its components ``components`` are held at
+    ``value + velocity * t``.
+
+    Attributes:
+        kind: ``"box"`` or ``"plane"``.
+        box_min: Lower corner of the box [m].
+        box_max: Upper corner of the box [m].
+        point: A point of the plane [m].
+        normal: Normal of the plane (normalised here) [-].
+        tol: Selection tolerance [m].
+        components: Held displacement components (0 = x, 1 = y, 2 = z).
+        value: Prescribed displacement at t = 0 [m].
+        velocity: Prescribed velocity of the pinned nodes [m/s] (per unit load parameter in
+            statics).
+
+    """
+
+    kind: str = "box"
+    box_min: tuple[float, float, float] = (-math.inf, -math.inf, -math.inf)
+    box_max: tuple[float, float, float] = (math.inf, math.inf, math.inf)
+    point: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    tol: float = 1.0e-8
+    components: tuple[int, ...] = (0, 1, 2)
+    value: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("box", "plane"):
+            raise InputError(f"pin.kind must be 'box' or 'plane', got {self.kind!r}")
+        for name in ("box_min", "box_max"):
+            arr = np.asarray(getattr(self, name), dtype=float).reshape(-1)
+            if arr.shape != (3,) or np.any(np.isnan(arr)):
+                raise InputError(f"pin.{name} must be a 3-vector, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, tuple(float(a) for a in arr))
+        for name in ("point", "normal", "value", "velocity"):
+            object.__setattr__(self, name, _vector3(f"pin.{name}", getattr(self, name)))
+        if self.kind == "plane" and np.linalg.norm(self.normal) == 0.0:
+            raise InputError("pin.normal must be non-zero")
+        if not (math.isfinite(self.tol) and self.tol >= 0.0):
+            raise InputError(f"pin.tol must be >= 0, got {self.tol}")
+        comps = tuple(int(c) for c in self.components)
+        if not comps or any(c not in (0, 1, 2) for c in comps) or len(set(comps)) != len(comps):
+            raise InputError(f"pin.components must be distinct values in 0, 1, 2, got "
+                             f"{self.components!r}")
+        object.__setattr__(self, "components", comps)
+
+    def select(self, X: np.ndarray) -> np.ndarray:
+        """Boolean mask of the rows of ``X`` ((n, 3) reference positions) that are pinned."""
+        if self.kind == "plane":
+            n = np.asarray(self.normal) / np.linalg.norm(self.normal)
+            return np.abs((X - np.asarray(self.point)) @ n) <= self.tol
+        lo, hi = np.asarray(self.box_min) - self.tol, np.asarray(self.box_max) + self.tol
+        return np.all((X >= lo) & (X <= hi), axis=1)
+
+    def displacement(self, t: float) -> np.ndarray:
+        """Prescribed displacement ``value + velocity * t`` [m]."""
+        return np.asarray(self.value) + np.asarray(self.velocity) * t
+
+
+@dataclass(frozen=True)
+class BodyOptions:
+    """Discretisation, time integration, loads and boundary conditions of the body.
+
+    Attributes:
+        degree: Lagrange degree of the displacement, 1 (P1) or 2 (P2).
+        dynamics: ``"static"``, ``"implicit_euler"`` or ``"newmark"`` (beta 1/4, gamma 1/2).
+        dt: Time step [s] (load-parameter increment in statics), > 0.
+        gravity: Gravitational acceleration [m/s^2].
+        pins: Prescribed-displacement sets.
+        contacts: Rigid obstacles with penalty contact.
+        quadrature_degree: Degree of the volume quadrature; ``None`` means ``2 * degree``.
+
+    """
+
+    degree: int = 1
+    dynamics: str = "static"
+    dt: float = 1.0e-2
+    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
+    pins: tuple[PinSpec, ...] = ()
+    contacts: tuple[ContactOptions, ...] = ()
+    quadrature_degree: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.degree not in (1, 2):
+            raise InputError(f"body.degree must be 1 or 2, got {self.degree}")
+        if self.dynamics not in DYNAMICS:
+            raise InputError(f"body.dynamics must be one of {DYNAMICS}, got {self.dynamics!r}")
+        if not (math.isfinite(self.dt) and self.dt > 0.0):
+            raise InputError(f"body.dt must be > 0, got {self.dt}")
+        object.__setattr__(self, "gravity", _vector3("body.gravity", self.gravity))
+        object.__setattr__(self, "pins", tuple(_as(PinSpec, p) for p in self.pins))
+        object.__setattr__(self, "contacts", tuple(_as(ContactOptions, c)
+                                                   for c in self.contacts))
+        if self.quadrature_degree is not None and self.quadrature_degree < 1:
+            raise InputError(f"body.quadrature_degree must be >= 1, got "
+                             f"{self.quadrature_degree}")
+
+    @property
+    def qdegree(self) -> int:
+        """The volume quadrature degree in use."""
+        return self.quadrature_degree or 2 * self.degree
+
+
+def _as(cls: type, value: Any) -> Any:
+    """``value`` if it is a ``cls`` already, else ``cls(**value)`` (a TOML table)."""
+    return value if isinstance(value, cls) else cls(**dict(value))
+
+
+@dataclass(frozen=True)
+class StepReport:
+    """What one ``Body.step`` (or ``solve_static``) did.
+
+    Attributes:
+        time: Time (load parameter) reached [s].
+        newton_iterations: Newton iterations summed over all attempts and sub-steps.
+        energy: Total energy kinetic + elastic + gravity + contact [J].
+        kinetic: Kinetic energy ``int rho/2 |v|^2`` [J].
+        elastic: Stored energy ``int psi`` [J].
+        gravity: Gravity potential ``-int rho g.u`` [J].
+        contact: Penalty energy [J].
+        min_det_f: Minimum ``det F`` over quadrature points [-].
+        halvings: How many times the step was halved.
+        substeps: Sub-steps taken to reach ``time``.
+        converged: Always True for a returned report (failure raises ``SolverError``).
+
+    """
+
+    time: float
+    newton_iterations: int
+    energy: float
+    kinetic: float
+    elastic: float
+    gravity: float
+    contact: float
+    min_det_f: float
+    halvings: int
+    substeps: int
+    converged: bool = True
+
+
+@dataclass
+class _State:
+    """Copies of the body's arrays and time, to restore after a failed step."""
+
+    t: float
+    arrays: list[np.ndarray] = field(default_factory=list)
+
+
+class Body:
+    """A hyperelastic body on a dolfinx tetrahedral mesh.
+
+    Args:
+        mesh: dolfinx tetrahedral mesh (reference configuration, SI units).
+        material: Its material.
+        options: Discretisation, dynamics, loads and pins.
+        newton: Newton solver options.
+
+    Attributes:
+        u: Displacement (dolfinx Function on the vector P1/P2 space ``V``) [m].
+        v: Velocity [m/s].
+        a: Acceleration [m/s^2] (Newmark only; zero otherwise).
+        t: Current time (load parameter) [s].
+        contacts: ``PenaltyContact`` objects, one per ``options.contacts`` entry.
+
+    """
+
+    def __init__(self, mesh: Any, material: Material, options: BodyOptions | None = None,
+                 newton: NewtonOptions | None = None) -> None:
+        self.mesh, self.material = mesh, material
+        self.options = options or BodyOptions()
+        self.newton = newton or NewtonOptions()
+        self.V = vector_space(mesh, self.options.degree)
+        self.u, self.v, self.a = (self._function(n) for n in ("displacement", "velocity",
+                                                              "acceleration"))
+        self._u_n, self._v_n, self._a_n, self._u_pred = (self._function(n) for n in
+                                                          ("u_n", "v_n", "a_n", "u_pred"))
+        self.t = 0.0
+        self._rate = np.zeros_like(self.u.x.array)
+        self._accel_ready = False
+        self._inertia = dolfinx.fem.Constant(mesh, 0.0)
+        self.gravity = dolfinx.fem.Constant(mesh, np.array(self.options.gravity))
+        self.contacts = [PenaltyContact(c, mesh, material.E) for c in self.options.contacts]
+        self.dx = ufl.Measure("dx", domain=mesh,
+                              metadata={"quadrature_degree": self.options.qdegree})
+        self._bcs, self._pin_constants = self._build_pins()
+        self._compile_forms()
+
+    # --- construction ------------------------------------------------------------------------
+
+    def _function(self, name: str) -> Any:
+        f = dolfinx.fem.Function(self.V, name=name)
+        return f
+
+    def _build_pins(self) -> tuple[list[Any], list[tuple[PinSpec, int, Any, np.ndarray]]]:
+        """One Dirichlet condition per (pin, component) on the nodes it selects.
+
+        The dof of node ``i`` (``V.tabulate_dof_coordinates()`` row, owned and ghost, P1 or
+        P2 nodes) and component ``k`` in the blocked space is ``3 i + k``.
+        """
+        X = self.V.tabulate_dof_coordinates()
+        bcs, constants = [], []
+        for pin in self.options.pins:
+            nodes = np.flatnonzero(pin.select(X)).astype(np.int32)
+            if self.mesh.comm.allreduce(nodes.size, op=MPI.SUM) == 0:
+                raise InputError(f"pin {pin} selects no node of the mesh")
+            for k in pin.components:
+                value = dolfinx.fem.Constant(self.mesh, float(pin.displacement(0.0)[k]))
+                dofs = (3 * nodes + k).astype(np.int32)
+                bcs.append(dolfinx.fem.dirichletbc(value, dofs, self.V.sub(k)))
+                constants.append((pin, k, value, dofs))
+        return bcs, constants
+
+    def deformation_gradient(self, u: Any | None = None) -> Any:
+        """``F = I + grad u`` (UFL)."""
+        return ufl.Identity(3) + ufl.grad(self.u if u is None else u)
+
+    def _energy_terms(self) -> dict[str, Any]:
+        """UFL forms of the energy terms of the current state ``u``, ``v``."""
+        rho, u, dx = self.material.density, self.u, self.dx
+        terms = {
+            "elastic": self.material.psi(self.deformation_gradient()) * dx,
+            "gravity": -rho * ufl.dot(self.gravity, u) * dx,
+            "kinetic": 0.5 * rho * ufl.dot(self.v, self.v) * dx,
+            "contact": sum((c.energy(u) for c in self.contacts),
+                           0.0 * ufl.dot(u, u) * dx),
+        }
+        return terms
+
+    def _compile_forms(self) -> None:
+        """Compile the energy terms, the static and dynamic potentials and their solvers."""
+        terms = self._energy_terms()
+        self._forms = {k: dolfinx.fem.form(v) for k, v in terms.items()}
+        static = terms["elastic"] + terms["gravity"] + terms["contact"]
+        diff = self.u - self._u_pred
+        inertia = 0.5 * self.material.density * self._inertia * ufl.dot(diff, diff) * self.dx
+        detf = ufl.det(self.deformation_gradient())
+        q, scale = self.options.qdegree, self._energy_scale()
+        self._static_solver = EnergyNewton(static, self.u, self._bcs, detf, q, self.newton,
+                                           scale)
+        self._dynamic_solver = (None if self.options.dynamics == "static" else
+                                EnergyNewton(static + inertia, self.u, self._bcs, detf, q,
+                                             self.newton, scale))
+        self._reaction = [[dolfinx.fem.form(f) for f in c.force_forms(self.u)]
+                          for c in self.contacts]
+        self._static_ufl = static
+
+    def _energy_scale(self) -> float:
+        """Magnitude ``(mu + lambda) |Omega|`` [J] of the summed energy terms (noise band)."""
+        volume = global_scalar(dolfinx.fem.form(1.0 * self.dx))
+        return (self.material.mu + self.material.lmbda) * volume
+
+    # --- public API --------------------------------------------------------------------------
+
+    def energies(self) -> dict[str, float]:
+        """Kinetic, elastic, gravity, contact and total energy of the current state [J]."""
+        values = {k: global_scalar(f) for k, f in self._forms.items()}
+        values["total"] = sum(values.values())
+        return values
+
+    def min_det_f(self) -> float:
+        """Minimum of ``det F`` over all volume quadrature points (all ranks) [-]."""
+        return self._static_solver.min_det_f()
+
+    def reaction_force(self, index: int = 0) -> np.ndarray:
+        """Force exerted by obstacle ``index`` on the body [N] (the obstacle feels minus it).
+
+        ``R = int_dOmega -k <g>_- grad g dA`` assembled at the current displacement.
+        """
+        if not 0 <= index < len(self._reaction):
+            raise InputError(f"reaction_force: no contact number {index} "
+                             f"({len(self._reaction)} defined)")
+        return np.array([global_scalar(f) for f in self._reaction[index]])
+
+    def set_sphere_center(self, center: Any, index: int = 0) -> None:
+        """Move the centre of sphere obstacle ``index`` [m] before the next step."""
+        self.contacts[index].set_center(center)
+
+    def step(self) -> StepReport:
+        """Advance by ``options.dt`` (time or load parameter), halving on failure.
+
+        Raises:
+            SolverError: The step failed ``max_halvings + 1`` times; the state before the
+                step is restored.
+
+        """
+        dynamic = self.options.dynamics != "static"
+        return self._advance(self.t + self.options.dt, dynamic)
+
+    def solve_static(self) -> StepReport:
+        """Equilibrium at the current time with the current pins (no inertia); v = 0."""
+        report = self._advance(self.t, dynamic=False)
+        for f in (self.v, self.a):
+            f.x.array[:] = 0.0
+        return report
+
+    # --- stepping ------------------------------------------------------------------------------
+
+    def _advance(self, t_target: float, dynamic: bool) -> StepReport:
+        """Reach ``t_target`` by sub-steps, halving the sub-step after each failure."""
+        start = self._save()
+        h = max(t_target - self.t, 0.0)
+        iterations, halvings, substeps = 0, 0, 0
+        first = True
+        while first or self.t < t_target - 1e-12 * max(self.options.dt, abs(t_target)):
+            first = False
+            h = min(h, t_target - self.t)
+            saved = self._save()
+            result = self._substep(h, dynamic)
+            iterations += result.iterations
+            if result.converged:
+                substeps += 1
+                continue
+            self._restore(saved)
+            halvings += 1
+            if halvings > self.newton.max_halvings or h == 0.0:
+                self._restore(start)
+                raise SolverError(self._diagnostic(result, halvings - 1, h))
+            h *= 0.5
+        return self._report(iterations, halvings, substeps)
+
+    def _substep(self, h: float, dynamic: bool) -> NewtonResult:
+        """One Newton solve from ``t`` to ``t + h``; updates v, a and t on success."""
+        t_new = self.t + h
+        self._set_pins(t_new)
+        solver = self._static_solver
+        if dynamic:
+            self._ensure_initial_acceleration()
+            self._predict(h)
+            solver = self._dynamic_solver  # type: ignore[assignment]
+        else:
+            self._static_guess(h)
+        result = solver.solve()  # type: ignore[union-attr]
+        if result.converged:
+            if dynamic:
+                self._update_kinematics(h)
+            elif h > 0.0:
+                self._rate[:] = (self.u.x.array - self._u_n.x.array) / h
+            self.t = t_new
+        return result
+
+    def _static_guess(self, h: float) -> None:
+        """Initial guess of a load step: ``u + h du/dt`` of the last step, pins applied.
+
+        Falls back to the current ``u`` with the new pin values when the extrapolation
+        is inadmissible (``det F <= 0``); a first step uses that directly.
+        """
+        self._u_n.x.array[:] = self.u.x.array
+        self.u.x.array[:] += h * self._rate
+        self._apply_bcs()
+        if self._static_solver.min_det_f() <= 0.0:
+            self.u.x.array[:] = self._u_n.x.array
+            self._apply_bcs()
+
+    def _set_pins(self, t: float) -> None:
+        for pin, k, constant, _ in self._pin_constants:
+            constant.value = float(pin.displacement(t)[k])
+
+    def _apply_bcs(self) -> None:
+        for bc in self._bcs:
+            bc.set(self.u.x.array)
+        self.u.x.scatter_forward()
+
+    def _predict(self, h: float) -> None:
+        """Store u_n, v_n, a_n; set u_pred, the inertia weight and the initial guess u_pred."""
+        newmark = self.options.dynamics == "newmark"
+        beta = NEWMARK_BETA if newmark else 1.0
+        for dst, src in ((self._u_n, self.u), (self._v_n, self.v), (self._a_n, self.a)):
+            dst.x.array[:] = src.x.array
+        pred = self.u.x.array + h * self.v.x.array
+        if newmark:
+            pred += h * h * (0.5 - beta) * self.a.x.array
+        self._u_pred.x.array[:] = pred
+        self._inertia.value = 1.0 / (beta * h * h)
+        self.u.x.array[:] = pred
+        self._apply_bcs()
+        if self._static_solver.min_det_f() <= 0.0:
+            self.u.x.array[:] = self._u_n.x.array
+            self._apply_bcs()
+
+    def _update_kinematics(self, h: float) -> None:
+        """Set v (and a for Newmark) at the end of the sub-step from the new u."""
+        u, u_n, v_n, a_n = (f.x.array for f in (self.u, self._u_n, self._v_n, self._a_n))
+        if self.options.dynamics == "newmark":
+            a_new = (u - self._u_pred.x.array) / (NEWMARK_BETA * h * h)
+            self.v.x.array[:] = v_n + h * ((1.0 - NEWMARK_GAMMA) * a_n + NEWMARK_GAMMA * a_new)
+            self.a.x.array[:] = a_new
+        else:
+            self.v.x.array[:] = (u - u_n) / h
+
+    def _ensure_initial_acceleration(self) -> None:
+        """Newmark needs a_0: solve ``M a_0 = -dPi_static/du`` once (a_0 = 0 on pins)."""
+        if self._accel_ready or self.options.dynamics != "newmark":
+            return
+        w, da = ufl.TestFunction(self.V), ufl.TrialFunction(self.V)
+        mass = self.material.density * ufl.dot(da, w) * self.dx
+        rhs = -ufl.derivative(self._static_ufl, self.u, w)
+        zero = [dolfinx.fem.dirichletbc(dolfinx.fem.Constant(self.mesh, 0.0), dofs,
+                                        self.V.sub(k))
+                for _, k, _, dofs in self._pin_constants]
+        problem = dolfinx.fem.petsc.LinearProblem(
+            mass, rhs, bcs=zero, petsc_options_prefix=f"body_accel_{id(self)}_",
+            petsc_options={"ksp_type": "preonly", "pc_type": "lu",
+                           "pc_factor_mat_solver_type": self.newton.linear_solver})
+        self.a.x.array[:] = problem.solve().x.array
+        self._accel_ready = True
+
+    def _arrays(self) -> list[np.ndarray]:
+        """The state arrays (views) that a failed step must restore."""
+        fields = (self.u, self.v, self.a, self._u_n, self._v_n, self._a_n, self._u_pred)
+        return [f.x.array for f in fields] + [self._rate]
+
+    def _save(self) -> _State:
+        return _State(self.t, [a.copy() for a in self._arrays()])
+
+    def _restore(self, state: _State) -> None:
+        for array, saved in zip(self._arrays(), state.arrays, strict=True):
+            array[:] = saved
+        self.t = state.t
+        self._set_pins(self.t)
+
+    def _report(self, iterations: int, halvings: int, substeps: int) -> StepReport:
+        e = self.energies()
+        return StepReport(time=self.t, newton_iterations=iterations, energy=e["total"],
+                          kinetic=e["kinetic"], elastic=e["elastic"], gravity=e["gravity"],
+                          contact=e["contact"], min_det_f=self.min_det_f(),
+                          halvings=halvings, substeps=substeps)
+
+    def _diagnostic(self, result: NewtonResult, halvings: int, h: float) -> str:
+        o = self.options
+        return (f"body step failed at t={self.t:.6g} after {halvings} halvings "
+                f"(last sub-step {h:.3e}, dt={o.dt:.3e}, dynamics={o.dynamics}, "
+                f"degree={o.degree}, E={self.material.E:.3e}, nu={self.material.nu}, "
+                f"model={self.material.model}): {result.describe()}; "
+                f"state at t={self.t:.6g} restored")

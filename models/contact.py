@@ -1,0 +1,148 @@
+"""Penalty contact of the body with rigid obstacles (ground plane, sphere) as UFL energy terms.
+
+For a rigid obstacle with signed gap function ``g(x)`` (> 0 outside, < 0 inside) evaluated at
+the current position ``x = X + u`` of a boundary point, the penalty energy is
+
+    Pi_c(u) = int_{dOmega_0} k/2 <g(X + u)>_-^2 dA,    <g>_- = min(g, 0),
+
+(Wriggers, "Computational Contact Mechanics", 2006, sec. 6.3: the quadratic penalty is the
+classic C^1 choice; it enters the Newton Jacobian through ``ufl.derivative``). The traction on
+the body is ``t = -k <g>_- grad g`` and the force the obstacle exerts on the body is the
+assembled vector integral ``R = int -k <g>_- grad g dA``; the force on the obstacle is ``-R``.
+
+Gap functions (``n`` unit normal pointing out of the obstacle):
+    plane through ``p``:            g = (x - p).n,           grad g = n
+    sphere of centre c, radius r:   g = |x - c| - r,         grad g = (x - c)/|x - c|
+
+The penalty stiffness ``k`` [Pa/m] defaults to ``stiffness_factor * E / h`` with ``h`` the
+smallest cell diameter of the mesh, so the penetration under a pressure ``p`` is
+``p h / (stiffness_factor E)``, a small fraction of a cell.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from models.backend import MPI, dolfinx, ufl
+from models.errors import InputError
+
+OBSTACLES: tuple[str, ...] = ("plane", "sphere")
+
+
+def _vector3(name: str, value: Any) -> tuple[float, float, float]:
+    """Return a finite 3-vector as a tuple of floats, or raise InputError naming ``name``."""
+    arr = np.asarray(value, dtype=float).reshape(-1)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise InputError(f"{name} must be a finite 3-vector, got {value!r}")
+    return (float(arr[0]), float(arr[1]), float(arr[2]))
+
+
+@dataclass(frozen=True)
+class ContactOptions:
+    """A rigid obstacle held off the body by a penalty energy.
+
+    Attributes:
+        obstacle: ``"plane"`` (ground) or ``"sphere"``.
+        point: A point of the plane [m] (plane only).
+        normal: Normal of the plane pointing to the free side (normalised here) [-].
+        center: Centre of the sphere at t = 0 [m] (sphere only; ``Body.set_sphere_center``
+            moves it between steps).
+        radius: Radius of the sphere [m] (> 0 for a sphere).
+        stiffness: Penalty stiffness ``k`` [Pa/m]; ``None`` means
+            ``stiffness_factor * E / h_min``.
+        stiffness_factor: Scale of the default stiffness [-].
+        quadrature_degree: Degree of the facet quadrature of the penalty (the integrand has a
+            kink at g = 0, so more points than the polynomial degree help).
+
+    """
+
+    obstacle: str = "plane"
+    point: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    radius: float = 1.0
+    stiffness: float | None = None
+    stiffness_factor: float = 100.0
+    quadrature_degree: int = 4
+
+    def __post_init__(self) -> None:
+        if self.obstacle not in OBSTACLES:
+            raise InputError(f"contact.obstacle must be one of {OBSTACLES}, got {self.obstacle!r}")
+        object.__setattr__(self, "point", _vector3("contact.point", self.point))
+        object.__setattr__(self, "center", _vector3("contact.center", self.center))
+        normal = np.asarray(_vector3("contact.normal", self.normal))
+        if np.linalg.norm(normal) == 0.0:
+            raise InputError("contact.normal must be non-zero")
+        object.__setattr__(self, "normal", _vector3("contact.normal",
+                                                    normal / np.linalg.norm(normal)))
+        if not (math.isfinite(self.radius) and self.radius > 0.0):
+            raise InputError(f"contact.radius must be > 0, got {self.radius}")
+        if self.stiffness is not None and not (math.isfinite(self.stiffness)
+                                               and self.stiffness > 0.0):
+            raise InputError(f"contact.stiffness must be > 0, got {self.stiffness}")
+        if not (math.isfinite(self.stiffness_factor) and self.stiffness_factor > 0.0):
+            raise InputError(f"contact.stiffness_factor must be > 0, got {self.stiffness_factor}")
+        if self.quadrature_degree < 1:
+            raise InputError(f"contact.quadrature_degree must be >= 1, got "
+                             f"{self.quadrature_degree}")
+
+
+def min_cell_size(mesh: Any) -> float:
+    """Smallest cell diameter of ``mesh`` over all ranks [m]."""
+    tdim = mesh.topology.dim
+    cells = np.arange(mesh.topology.index_map(tdim).size_local, dtype=np.int32)
+    local = float(np.min(mesh.h(tdim, cells))) if cells.size else math.inf
+    return float(mesh.comm.allreduce(local, op=MPI.MIN))
+
+
+class PenaltyContact:
+    """One obstacle's penalty energy and reaction force as UFL forms of the displacement.
+
+    Args:
+        options: The obstacle.
+        mesh: The body's mesh.
+        young: Young's modulus of the body [Pa] (scales the default stiffness).
+
+    """
+
+    def __init__(self, options: ContactOptions, mesh: Any, young: float) -> None:
+        self.options = options
+        k = options.stiffness or options.stiffness_factor * young / min_cell_size(mesh)
+        self.stiffness = dolfinx.fem.Constant(mesh, float(k))
+        self.point = dolfinx.fem.Constant(mesh, np.array(options.point))
+        self.normal = dolfinx.fem.Constant(mesh, np.array(options.normal))
+        self.center = dolfinx.fem.Constant(mesh, np.array(options.center))
+        self.radius = dolfinx.fem.Constant(mesh, float(options.radius))
+        self.ds = ufl.Measure("ds", domain=mesh,
+                              metadata={"quadrature_degree": options.quadrature_degree})
+        self._X = ufl.SpatialCoordinate(mesh)
+
+    def set_center(self, center: Any) -> None:
+        """Move the sphere's centre [m] (takes effect at the next solve)."""
+        self.center.value[:] = _vector3("contact.center", center)
+
+    def gap(self, u: Any) -> tuple[Any, Any]:
+        """Signed gap ``g`` and its gradient ``grad g`` at ``x = X + u`` (UFL)."""
+        x = self._X + u
+        if self.options.obstacle == "plane":
+            return ufl.dot(x - self.point, self.normal), self.normal
+        d = x - self.center
+        dist = ufl.sqrt(ufl.dot(d, d))
+        return dist - self.radius, d / dist
+
+    def energy(self, u: Any) -> Any:
+        """Penalty energy form ``int k/2 <g>_-^2 dA`` [J]."""
+        g, _ = self.gap(u)
+        neg = ufl.conditional(ufl.lt(g, 0.0), g, 0.0)
+        return 0.5 * self.stiffness * neg**2 * self.ds
+
+    def force_forms(self, u: Any) -> list[Any]:
+        """Components of the force on the body ``int -k <g>_- grad g dA`` [N] (UFL forms)."""
+        g, grad_g = self.gap(u)
+        neg = ufl.conditional(ufl.lt(g, 0.0), g, 0.0)
+        traction = -self.stiffness * neg * grad_g
+        return [traction[i] * self.ds for i in range(3)]

@@ -1,0 +1,300 @@
+"""The one generic sparse Hessian assembly of the shell: fixed CSR pattern + numba scatter.
+
+Every shell energy term is a sum over *stencils* (edges: 2 vertices, faces: 3, hinges: 4;
+see :mod:`models.shell.dofs`). A term returns a :class:`TermEval` whose ``blocks`` hold one
+symmetric local Hessian ``(3 s, 3 s)`` per stencil. :class:`StencilPattern` builds, once, the
+scalar CSR pattern of the global ``(3 n, 3 n)`` Hessian made of full 3x3 vertex blocks (the
+union of all stencils' vertex pairs plus optional extra vertex-level matrices such as the
+penalty's ``H^T H``) and, per stencil array, a precomputed int64 scatter map into
+``csr.data``. :func:`assemble` then only adds numbers into a data array in a numba kernel and
+returns a ``scipy.sparse.csr_matrix`` that reuses the same ``indptr``/``indices`` arrays on
+every call, so a sparse direct solver can reuse its symbolic analysis.
+
+CSR layout: the vertex-block pattern is sorted by (row, column). Vertex row ``r`` with
+``m_r`` blocks gives three scalar rows ``3 r + a`` of equal length ``L_r = 3 m_r``; block
+``q`` (``bptr[r] <= q < bptr[r+1]``) starts at ``off_q = 9 bptr[r] + 3 (q - bptr[r])`` and
+its entry ``(a, b)`` lives at ``csr.data[off_q + a L_r + b]``. The scatter map of a stencil
+array stores ``off_q`` per local vertex pair (``(m, s, s)`` int64, 9x smaller than a per-entry
+map); the kernel adds ``a L_r + b`` using ``row_len[r] = L_r``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numba
+import numpy as np
+import scipy.sparse as sp
+
+from models.errors import InputError
+
+HessianMode = Literal["exact", "gauss_newton", "projected"]
+"""Local Hessian variant: exact; Gauss-Newton (drop indefinite curvature parts); projected
+(per-stencil eigenvalue clamp to >= 0)."""
+
+HESSIAN_MODES: tuple[str, ...] = ("exact", "gauss_newton", "projected")
+
+
+def check_hessian_mode(mode: str, name: str = "hessian_mode") -> None:
+    """Raise InputError naming ``name`` unless ``mode`` is one of :data:`HESSIAN_MODES`."""
+    if mode not in HESSIAN_MODES:
+        raise InputError(f"{name}: expected one of {HESSIAN_MODES}, got {mode!r}")
+
+
+def check_order(order: int) -> None:
+    """Raise InputError unless the derivative order is 0, 1 or 2."""
+    if order not in (0, 1, 2):
+        raise InputError(f"order: expected 0 (value), 1 (+gradient) or 2 (+Hessian), got {order}")
+
+
+@dataclass(frozen=True)
+class TermEval:
+    """Result of one energy term evaluated over its stencils.
+
+    Attributes:
+        value: Energy (float).
+        grad: Flat gradient (3 n,), or None when order < 1.
+        blocks: Local Hessians (m, 3 s, 3 s) in stencil order, or None when order < 2.
+        element_values: Energy of each stencil (m,), or None if the term does not report it.
+
+    """
+
+    value: float
+    grad: np.ndarray | None = None
+    blocks: np.ndarray | None = None
+    element_values: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class ScatterMap:
+    """Where the local Hessian blocks of one stencil array go in ``csr.data``.
+
+    Attributes:
+        stencils: (m, s) int64 vertex indices.
+        base: (m, s, s) int64 offset in ``csr.data`` of entry (0, 0) of the 3x3 block
+            coupling local vertices a and b.
+
+    """
+
+    stencils: np.ndarray
+    base: np.ndarray
+
+
+@dataclass(frozen=True)
+class StencilPattern:
+    """Fixed CSR pattern (3x3 vertex blocks) of the global shell Hessian.
+
+    Attributes:
+        n_vertices: Number of vertices n (the matrix is 3 n x 3 n).
+        indptr: (3 n + 1,) CSR row pointer (int32 when it fits, else int64).
+        indices: (nnz,) CSR column indices (same dtype as indptr).
+        row_len: (n,) int64 scalar entries per scalar row of each vertex row (3 m_r).
+        block_rows: (nb,) int64 vertex row of each 3x3 block (sorted by row, column).
+        block_cols: (nb,) int64 vertex column of each 3x3 block.
+        maps: One :class:`ScatterMap` per stencil array, in the order given.
+        extra_maps: Per extra vertex-level matrix, (nnz_M, 3) int64 offsets of the diagonal
+            entries (k, k) of the block of each of its non-zeros (COO, canonical order).
+
+    """
+
+    n_vertices: int
+    indptr: np.ndarray
+    indices: np.ndarray
+    row_len: np.ndarray
+    block_rows: np.ndarray
+    block_cols: np.ndarray
+    maps: tuple[ScatterMap, ...] = field(default_factory=tuple)
+    extra_maps: tuple[np.ndarray, ...] = field(default_factory=tuple)
+
+    @property
+    def nnz(self) -> int:
+        """Scalar non-zeros (9 per block)."""
+        return int(self.indices.shape[0])
+
+    @property
+    def n_blocks(self) -> int:
+        """Non-zero 3x3 blocks."""
+        return int(self.block_rows.shape[0])
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(3 n, 3 n)."""
+        return (3 * self.n_vertices, 3 * self.n_vertices)
+
+    @classmethod
+    def from_stencils(cls, stencils: Sequence[np.ndarray], n_vertices: int,
+                      extra: Sequence[sp.spmatrix | sp.sparray] = ()) -> StencilPattern:
+        """Build the pattern of the union of all stencils' vertex pairs and extra matrices.
+
+        Args:
+            stencils: Stencil arrays (m_i, s_i) of vertex indices.
+            n_vertices: Number of vertices n.
+            extra: Vertex-level (n, n) sparse matrices whose non-zeros (r, c) add full 3x3
+                blocks (e.g. the penalty's H^T H, applied per coordinate).
+
+        Returns:
+            The pattern with one scatter map per stencil array and per extra matrix.
+
+        """
+        n = int(n_vertices)
+        sts = [_check_stencil(s, n, idx) for idx, s in enumerate(stencils)]
+        coos = [_canonical_coo(m, n, idx) for idx, m in enumerate(extra)]
+        pair_keys = [_pair_keys(s, n).ravel() for s in sts]
+        pair_keys += [c.row.astype(np.int64) * n + c.col for c in coos]
+        pair_keys.append(np.arange(n, dtype=np.int64) * (n + 1))  # diagonal blocks always
+        keys = np.unique(np.concatenate(pair_keys))
+        rows, cols = keys // n, keys % n
+        bptr = np.searchsorted(rows, np.arange(n + 1)).astype(np.int64)
+        row_len = 3 * np.diff(bptr)
+        off = 9 * bptr[rows] + 3 * (np.arange(keys.size) - bptr[rows])
+        indptr, indices = _csr_arrays(rows, cols, off, row_len)
+        maps = tuple(ScatterMap(s, off[np.searchsorted(keys, _pair_keys(s, n))]) for s in sts)
+        extra_maps = tuple(_extra_offsets(c, keys, off, row_len, n) for c in coos)
+        return cls(n, indptr, indices, row_len, rows, cols, maps, extra_maps)
+
+    def to_csr(self, data: np.ndarray) -> sp.csr_matrix:
+        """Wrap ``data`` as a csr_matrix sharing this pattern's ``indptr``/``indices`` objects."""
+        if data.shape != (self.nnz,):
+            raise InputError(f"data: expected shape ({self.nnz},), got {data.shape}")
+        mat = sp.csr_matrix(self.shape, dtype=np.float64)
+        mat.data, mat.indices, mat.indptr = data, self.indices, self.indptr
+        return mat
+
+    def extra_data(self, which: int, matrix: sp.spmatrix | sp.sparray,
+                   scale: float = 1.0) -> np.ndarray:
+        """``csr.data`` of ``scale * (matrix kron I3)`` for the extra matrix number ``which``.
+
+        Args:
+            which: Index of the extra matrix given to :meth:`from_stencils`.
+            matrix: The same (n, n) matrix (its values are used).
+            scale: Factor applied to the values.
+
+        Returns:
+            (nnz,) data array, zero outside the matrix's blocks.
+
+        """
+        coo = _canonical_coo(matrix, self.n_vertices, which)
+        data = np.zeros(self.nnz)
+        data[self.extra_maps[which]] = scale * coo.data[:, None]
+        return data
+
+
+def _check_stencil(stencils: np.ndarray, n: int, idx: int) -> np.ndarray:
+    """Validate a stencil array (2-D int, indices in range) and return it as int64."""
+    s = np.ascontiguousarray(stencils, dtype=np.int64)
+    if s.ndim != 2:
+        raise InputError(f"stencils[{idx}]: expected a 2-D (m, s) array, got shape {s.shape}")
+    if s.size and (s.min() < 0 or s.max() >= n):
+        raise InputError(f"stencils[{idx}]: vertex index outside [0, {n})")
+    return s
+
+
+def _canonical_coo(matrix: sp.spmatrix | sp.sparray, n: int, idx: int) -> sp.coo_matrix:
+    """(n, n) COO with summed duplicates in row-major canonical order."""
+    if matrix.shape != (n, n):
+        raise InputError(f"extra[{idx}]: expected shape ({n}, {n}), got {matrix.shape}")
+    csr = sp.csr_matrix(matrix)
+    csr.sum_duplicates()
+    csr.sort_indices()
+    return csr.tocoo()
+
+
+def _pair_keys(stencils: np.ndarray, n: int) -> np.ndarray:
+    """(m, s, s) keys ``r n + c`` of all local vertex pairs (a, b) -> (stencil[a], stencil[b])."""
+    return stencils[:, :, None] * n + stencils[:, None, :]
+
+
+def _csr_arrays(rows: np.ndarray, cols: np.ndarray, off: np.ndarray,
+                row_len: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Scalar CSR ``indptr``/``indices`` of sorted 3x3 blocks (see module docstring)."""
+    nnz = 9 * rows.size
+    dtype = np.int32 if nnz < np.iinfo(np.int32).max else np.int64
+    indptr = np.zeros(3 * row_len.size + 1, dtype=np.int64)
+    np.cumsum(np.repeat(row_len, 3), out=indptr[1:])
+    indices = np.empty(nnz, dtype=dtype)
+    _fill_indices(indices, rows, cols, off, row_len)
+    return indptr.astype(dtype), indices
+
+
+@numba.njit(cache=True)
+def _fill_indices(indices: np.ndarray, rows: np.ndarray, cols: np.ndarray, off: np.ndarray,
+                  row_len: np.ndarray) -> None:  # pragma: no cover - numba
+    """indices[off_q + a L_r + b] = 3 c_q + b for every block q and a, b in 0..2."""
+    for q in range(rows.size):
+        L = row_len[rows[q]]
+        for a in range(3):
+            for b in range(3):
+                indices[off[q] + a * L + b] = 3 * cols[q] + b
+
+
+def _extra_offsets(coo: sp.coo_matrix, keys: np.ndarray, off: np.ndarray,
+                   row_len: np.ndarray, n: int) -> np.ndarray:
+    """(nnz_M, 3) data offsets of the diagonal entries (k, k) of each non-zero's block."""
+    q = np.searchsorted(keys, coo.row.astype(np.int64) * n + coo.col)
+    k = np.arange(3)
+    return off[q][:, None] + k * row_len[coo.row][:, None] + k
+
+
+@numba.njit(cache=True, fastmath=False)
+def _scatter(data: np.ndarray, stencils: np.ndarray, base: np.ndarray, row_len: np.ndarray,
+             blocks: np.ndarray, scale: float) -> None:  # pragma: no cover - numba
+    """data[base + a L_r + b] += scale * blocks[t, 3 a_loc + a, 3 b_loc + b] for all stencils."""
+    m, s = stencils.shape
+    for t in range(m):
+        for p in range(s):
+            L = row_len[stencils[t, p]]
+            for a in range(3):  # one scalar row at a time: its s blocks are close in memory
+                for q in range(s):
+                    o = base[t, p, q] + a * L
+                    for b in range(3):
+                        data[o + b] += scale * blocks[t, 3 * p + a, 3 * q + b]
+
+
+def assemble(pattern: StencilPattern,
+             contributions: Sequence[tuple[ScatterMap, np.ndarray]
+                                     | tuple[ScatterMap, np.ndarray, float]],
+             base: np.ndarray | None = None) -> sp.csr_matrix:
+    """Assemble local Hessian blocks into the fixed pattern.
+
+    ``H = base + sum_i scale_i * sum_t P_t^T blocks_i[t] P_t`` where ``P_t`` selects the dofs of
+    stencil ``t`` (:func:`models.shell.dofs.stencil_dofs`).
+
+    Args:
+        pattern: The fixed pattern.
+        contributions: ``(map, blocks)`` or ``(map, blocks, scale)`` per term; ``blocks`` is
+            (m, 3 s, 3 s) matching ``map.stencils``.
+        base: Optional (nnz,) data added first (e.g. the constant penalty Hessian).
+
+    Returns:
+        csr_matrix whose ``indptr``/``indices`` are the pattern's own arrays (same objects).
+
+    """
+    data = np.zeros(pattern.nnz) if base is None else base.copy()
+    for item in contributions:
+        smap, blocks = item[0], item[1]
+        scale = float(item[2]) if len(item) > 2 else 1.0
+        m, s = smap.stencils.shape
+        if blocks.shape != (m, 3 * s, 3 * s):
+            raise InputError(f"blocks: expected shape ({m}, {3 * s}, {3 * s}), "
+                             f"got {blocks.shape}")
+        _scatter(data, smap.stencils, smap.base, pattern.row_len,
+                 np.ascontiguousarray(blocks, dtype=np.float64), scale)
+    return pattern.to_csr(data)
+
+
+@numba.njit(cache=True, fastmath=False)
+def project_psd_blocks(blocks: np.ndarray) -> None:  # pragma: no cover - numba
+    """In place: replace each symmetric block by its projection onto the PSD cone.
+
+    ``K = V diag(w) V^T -> V diag(max(w, 0)) V^T`` (per-element eigenvalue clamp, as in
+    Teran et al. 2005 / the "projected Newton" of the IPC literature), via LAPACK ``syevd``.
+    """
+    for t in range(blocks.shape[0]):
+        k = 0.5 * (blocks[t] + blocks[t].T)
+        w, v = np.linalg.eigh(k)
+        if w[0] >= 0.0:
+            continue
+        w = np.maximum(w, 0.0)
+        blocks[t] = (v * w) @ np.ascontiguousarray(v.T)

@@ -1,0 +1,240 @@
+"""The composite shell energy W = k_L W_L + k_A W_A + k_B W_B + k_P W_P (Remillard & Kry 2013).
+
+* ``W_L = sum_e (l_e - l0_e)^2 / l0_e`` edge membrane (:mod:`models.shell.membrane`),
+* ``W_A = sum_T (A_T - A0_T)^2 / A0_T`` area membrane (optional, ``k_A = 0`` switches it off),
+* ``W_B = sum_h w_h (theta_h - theta0_h)^2`` hinge bending (:mod:`models.shell.bending`),
+* ``W_P = ||H (x - y)||^2`` cluster penalty to the embedded target y (:mod:`models.shell.penalty`).
+
+A term whose stiffness is 0 is skipped entirely (no kernel call, no stencils in the pattern).
+:meth:`ShellEnergy.evaluate` returns the value, the flat gradient and the Hessian assembled
+into one fixed CSR pattern (the same ``indptr``/``indices`` arrays on every call, see
+:mod:`models.shell.assembly`). The constant penalty Hessian ``2 k_P (H^T H) kron I3`` is either
+merged into that pattern once ("assembled") or returned as the factor ``G`` with
+``G^T G = 2 k_P (H^T H) kron I3`` ("low_rank") for the augmented solve
+``[[A, G^T], [G, -I]]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import scipy.sparse as sp
+
+from models.errors import InputError
+from models.shell.assembly import (
+    HessianMode,
+    ScatterMap,
+    StencilPattern,
+    TermEval,
+    assemble,
+    check_hessian_mode,
+    check_order,
+)
+from models.shell.bending import bending_energy_density, hinge_bending
+from models.shell.dofs import check_positions
+from models.shell.membrane import area_membrane, edge_membrane
+from models.shell.penalty import PenaltyOperator, penalty_factor, penalty_gram, penalty_term
+from models.shell.rest import RestState
+from models.shell.topology import ShellTopology
+
+PenaltyHessian = Literal["assembled", "low_rank"]
+
+
+@dataclass(frozen=True)
+class ShellParams:
+    """Stiffnesses and Hessian options of the shell energy.
+
+    Defaults follow the author's public code (jiongchen/bigbang, test_emb_thin_shell.cc):
+    edge 1e3, bending 1e-1, penalty 1e3; the area term is off. Physical values come from
+    :mod:`models.shell.stiffness`.
+
+    Attributes:
+        k_L: Edge membrane stiffness (energy / length; >= 0, 0 = off).
+        k_A: Area membrane stiffness (energy / area; >= 0, 0 = off).
+        k_B: Bending stiffness (energy; >= 0, 0 = off).
+        k_P: Penalty stiffness (energy / length^2; >= 0, 0 = off; needs H).
+        hessian_mode: "exact", "gauss_newton" or "projected" local Hessians.
+        penalty_hessian: "assembled" (H^T H merged into the pattern) or "low_rank" (the factor
+            G is returned instead and the assembled Hessian excludes the penalty).
+
+    """
+
+    k_L: float = 1e3
+    k_A: float = 0.0
+    k_B: float = 1e-1
+    k_P: float = 1e3
+    hessian_mode: HessianMode = "exact"
+    penalty_hessian: PenaltyHessian = "assembled"
+
+    def __post_init__(self) -> None:
+        """Validate stiffnesses (finite, >= 0) and option names."""
+        for name in ("k_L", "k_A", "k_B", "k_P"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise InputError(f"{name}: must be a finite number >= 0, got {value!r}")
+        check_hessian_mode(self.hessian_mode)
+        if self.penalty_hessian not in ("assembled", "low_rank"):
+            raise InputError(f"penalty_hessian: expected 'assembled' or 'low_rank', "
+                             f"got {self.penalty_hessian!r}")
+
+
+@dataclass(frozen=True)
+class ShellEval:
+    """Result of :meth:`ShellEnergy.evaluate`.
+
+    Attributes:
+        value: Total energy W.
+        grad: Flat gradient (3 n,), or None for order 0.
+        hess: Hessian csr_matrix (3 n, 3 n) on the fixed pattern, or None for order < 2.
+        penalty_factor: G (3 c, 3 n) when penalty_hessian == "low_rank" and order 2, else None.
+        terms: Energy of each active term: keys among "membrane_edge", "membrane_area",
+            "bending", "penalty" (stiffness included).
+
+    """
+
+    value: float
+    grad: np.ndarray | None
+    hess: sp.csr_matrix | None
+    penalty_factor: sp.csr_matrix | None
+    terms: dict[str, float] = field(default_factory=dict)
+
+
+class ShellEnergy:
+    """The composite discrete-shell energy over a fixed topology and rest state."""
+
+    def __init__(self, topology: ShellTopology, rest: RestState, params: ShellParams,
+                 H: sp.spmatrix | sp.sparray | np.ndarray | None = None) -> None:
+        """Set up active terms, the fixed Hessian pattern and the constant penalty parts.
+
+        Args:
+            topology: Shell connectivity.
+            rest: Rest state of the same topology.
+            params: Stiffnesses and Hessian options.
+            H: (c, n) cluster matrix; required when ``params.k_P > 0``.
+
+        Raises:
+            InputError: ``k_P > 0`` without H, or H of the wrong shape.
+
+        """
+        self.topology, self.rest, self.params = topology, rest, params
+        n = topology.n_vertices
+        if params.k_P > 0 and H is None:
+            raise InputError("H: k_P > 0 needs a cluster matrix H (or set k_P = 0)")
+        self._penalty = (PenaltyOperator.from_matrix(H, n)
+                         if (H is not None and params.k_P > 0) else None)
+        self._target = rest.positions.copy()
+        self._bend_weights = params.k_B * rest.hinge_weights
+        self._build_pattern()
+
+    def _stencils(self) -> dict[str, np.ndarray]:
+        """Stencil array of each active local term, in a fixed order."""
+        t, p = self.topology, self.params
+        active = {"membrane_edge": (p.k_L, t.edges), "membrane_area": (p.k_A, t.faces),
+                  "bending": (p.k_B, t.hinges)}
+        return {name: st for name, (k, st) in active.items() if k > 0 and st.shape[0] > 0}
+
+    def _build_pattern(self) -> None:
+        """Build the fixed CSR pattern of active stencils (+ H^T H when assembled) once."""
+        stencils = self._stencils()
+        assembled = self._penalty is not None and self.params.penalty_hessian == "assembled"
+        gram = penalty_gram(self._penalty) if assembled and self._penalty else None
+        self.pattern = StencilPattern.from_stencils(
+            list(stencils.values()), self.topology.n_vertices,
+            extra=[gram] if gram is not None else [])
+        self._maps: dict[str, ScatterMap] = dict(zip(stencils, self.pattern.maps, strict=True))
+        self._hess_base = (self.pattern.extra_data(0, gram, 2.0 * self.params.k_P)
+                           if gram is not None else None)
+        self._factor = (penalty_factor(self._penalty, self.params.k_P)
+                        if self._penalty is not None and not assembled else None)
+
+    @property
+    def n_vertices(self) -> int:
+        """Number of shell vertices n."""
+        return self.topology.n_vertices
+
+    @property
+    def target(self) -> np.ndarray:
+        """Current penalty target y (n, 3) (a copy)."""
+        return self._target.copy()
+
+    @property
+    def penalty_factor(self) -> sp.csr_matrix | None:
+        """G = sqrt(2 k_P) (H kron I3) in "low_rank" mode (constant), else None."""
+        return self._factor
+
+    def penalty_gram(self) -> sp.csr_matrix | None:
+        """Vertex-level H^T H (n, n), or None when the penalty is off."""
+        return penalty_gram(self._penalty) if self._penalty is not None else None
+
+    def set_target(self, y: np.ndarray) -> None:
+        """Set the penalty target y (n, 3), e.g. ``B (X_q + u_q)``; validated and copied."""
+        self._target = check_positions(y, self.n_vertices, "y").copy()
+
+    def value(self, x: np.ndarray) -> float:
+        """Total energy W(x)."""
+        return self.evaluate(x, order=0).value
+
+    def _term_evals(self, x: np.ndarray, order: int, mode: HessianMode) -> dict[str, TermEval]:
+        """Evaluate every active term (stiffness already included)."""
+        p, t, r = self.params, self.topology, self.rest
+        out: dict[str, TermEval] = {}
+        if "membrane_edge" in self._maps:
+            out["membrane_edge"] = edge_membrane(x, t.edges, r.rest_lengths, order=order,
+                                                 hessian_mode=mode, stiffness=p.k_L)
+        if "membrane_area" in self._maps:
+            out["membrane_area"] = area_membrane(x, t.faces, r.rest_areas, order=order,
+                                                 hessian_mode=mode, stiffness=p.k_A)
+        if "bending" in self._maps:
+            out["bending"] = hinge_bending(x, t.hinges, r.rest_angles, self._bend_weights,
+                                           order=order, hessian_mode=mode)
+        if self._penalty is not None:
+            out["penalty"] = penalty_term(x, self._target, self._penalty, order=min(order, 1),
+                                          stiffness=p.k_P)
+        return out
+
+    def evaluate(self, x: np.ndarray, order: int = 2,
+                 hessian: HessianMode | None = None) -> ShellEval:
+        """Energy, gradient and Hessian at positions ``x``.
+
+        Args:
+            x: (n, 3) positions (or flat (3 n,)).
+            order: 0 value, 1 + gradient, 2 + Hessian.
+            hessian: Hessian mode for this call (default ``params.hessian_mode``).
+
+        Returns:
+            ShellEval (see its docstring).
+
+        """
+        check_order(order)
+        mode = self.params.hessian_mode if hessian is None else hessian
+        check_hessian_mode(mode, "hessian")
+        xc = check_positions(x, self.n_vertices)
+        evals = self._term_evals(xc, order, mode)
+        grad = None
+        if order >= 1:
+            grad = np.zeros(3 * self.n_vertices)
+            for ev in evals.values():
+                grad += ev.grad  # type: ignore[arg-type]
+        hess = self._assemble(evals) if order >= 2 else None
+        return ShellEval(value=float(sum(ev.value for ev in evals.values())), grad=grad,
+                         hess=hess, penalty_factor=self._factor if order >= 2 else None,
+                         terms={name: ev.value for name, ev in evals.items()})
+
+    def _assemble(self, evals: dict[str, TermEval]) -> sp.csr_matrix:
+        """Scatter the local blocks of the active terms (+ constant penalty part)."""
+        contributions = [(self._maps[name], evals[name].blocks) for name in self._maps]
+        return assemble(self.pattern, contributions, base=self._hess_base)  # type: ignore[arg-type]
+
+    def bending_density(self, x: np.ndarray) -> np.ndarray:
+        """Per-vertex bending energy density k_B W_B split to edge vertices / vertex area (n,).
+
+        Zero everywhere when k_B = 0 or there are no hinges.
+        """
+        xc = check_positions(x, self.n_vertices)
+        if "bending" not in self._maps:
+            return np.zeros(self.n_vertices)
+        areas = np.where(self.rest.vertex_areas > 0, self.rest.vertex_areas, 1.0)
+        return bending_energy_density(xc, self.topology.hinges, self.rest.rest_angles,
+                                      self._bend_weights, areas)

@@ -1,0 +1,293 @@
+"""Newton's method for the coarse body's total potential through PETSc SNES.
+
+The body's discrete problem is the minimisation of one energy ``Pi(u)`` (a UFL form, see
+``models/body.py``): the residual is ``dPi/du`` and the Jacobian ``d^2 Pi/du^2``, both from
+``ufl.derivative``. SNES (``newtonls``) runs Newton with MUMPS LU for the linear solves.
+
+Line search (``NewtonOptions.line_search_type``):
+
+* ``"energy"`` (default): our backtracking Armijo search on the assembled energy, run in the
+  SNES line-search pre-check (``SNESLineSearchSetPreCheck``) so that SNES's own ``basic``
+  search then takes the scaled step. With the Newton step ``du`` and ``s = dPi(u).du < 0``
+  it accepts the first ``l = 1, 1/2, 1/4, ...`` with (Dennis & Schnabel 1996, Alg. A6.3.1)
+
+      Pi(u + l du) <= Pi(u) + c1 l s,
+
+  where ``Pi = +inf`` as soon as a quadrature point has ``det F <= 0``, so the iterate never
+  leaves the admissible set ``J > 0``. Near the solution the Newton decrease
+  ``s/2 ~ |r|^2 / k`` falls below the round-off of the assembled energy (which is
+  ``~1e-16 * sum |psi| dX``, e.g. ``(mu + lambda) |Omega|``, not ``1e-16 |Pi|``), and a strict
+  Armijo test then stalls; PETSc's ``bt`` on the objective stalls exactly so (measured in
+  ``tests/test_body_robust.py``). So when ``|Pi(u + l du) - Pi(u)| <= eps_Pi`` with
+  ``eps_Pi = energy_roundoff * (|Pi(u)| + energy_scale)`` (energy indistinguishable from
+  noise), the step is accepted iff the residual norm decreases.
+* ``"petsc_bt"``: PETSc's ``bt`` search on the same objective (``SNESSetObjective``).
+
+``solve()`` never trusts SNES: it reads the converged reason and checks ``min det F`` and the
+finiteness of the energy after every solve, and reports the outcome; the caller (``Body``)
+restores its last good state and cuts the step on failure.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from models.backend import (
+    PETSc,
+    dolfinx,
+    global_min_on_cells,
+    global_scalar,
+    quadrature_expression,
+    ufl,
+)
+from models.errors import InputError
+
+_COUNTER = itertools.count()
+
+
+@dataclass(frozen=True)
+class NewtonOptions:
+    """Options of the body's Newton solver.
+
+    Attributes:
+        rtol: Relative tolerance on the residual norm ``|dPi/du|`` (SNES ``snes_rtol``) [-].
+        atol: Absolute tolerance on the residual norm [N] (SNES ``snes_atol``).
+        stol: Tolerance on the relative Newton step ``|du| / |u|`` [-], counted only for a
+            full (unscaled) Newton step: it ends the iteration when the residual sits at its
+            round-off floor above ``atol``. 0 disables it.
+        max_it: Maximum Newton iterations per solve.
+        line_search: Energy-based backtracking line search (energy ``+inf`` where
+            ``det F <= 0``) when True; full Newton steps (``basic``) when False.
+        line_search_type: ``"energy"`` (our Armijo search with round-off allowance, default)
+            or ``"petsc_bt"`` (PETSc's ``bt`` on the energy objective); see module doc.
+        armijo_c1: Sufficient-decrease constant ``c1`` of the Armijo test [-].
+        energy_roundoff: Relative width of the energy noise band ``eps_Pi`` [-] (module doc).
+        max_backtracks: Step halvings inside one line search before it fails.
+        max_halvings: How many times a failed step (time step or load increment) is halved
+            and retried before ``SolverError`` is raised.
+        linear_solver: Direct solver package for the Newton systems: ``"mumps"`` or
+            ``"superlu_dist"`` (LU, in the wheel).
+
+    """
+
+    rtol: float = 1.0e-9
+    atol: float = 1.0e-10
+    stol: float = 1.0e-10
+    max_it: int = 50
+    line_search: bool = True
+    line_search_type: str = "energy"
+    armijo_c1: float = 1.0e-4
+    energy_roundoff: float = 1.0e-12
+    max_backtracks: int = 40
+    max_halvings: int = 8
+    linear_solver: str = "mumps"
+
+    def __post_init__(self) -> None:
+        for name in ("rtol", "atol", "stol", "armijo_c1", "energy_roundoff"):
+            value = float(getattr(self, name))
+            if not (math.isfinite(value) and value >= 0.0):
+                raise InputError(f"newton.{name} must be finite and >= 0, got {value}")
+        if self.max_it < 1:
+            raise InputError(f"newton.max_it must be >= 1, got {self.max_it}")
+        if self.max_halvings < 0:
+            raise InputError(f"newton.max_halvings must be >= 0, got {self.max_halvings}")
+        if self.line_search_type not in ("energy", "petsc_bt"):
+            raise InputError("newton.line_search_type must be 'energy' or 'petsc_bt', "
+                             f"got {self.line_search_type!r}")
+        if self.max_backtracks < 1:
+            raise InputError(f"newton.max_backtracks must be >= 1, got {self.max_backtracks}")
+        if self.linear_solver not in ("mumps", "superlu_dist"):
+            raise InputError("newton.linear_solver must be 'mumps' or 'superlu_dist', "
+                             f"got {self.linear_solver!r}")
+
+    @property
+    def uses_petsc_bt(self) -> bool:
+        """Whether PETSc's ``bt`` line search on the objective is in use."""
+        return self.line_search and self.line_search_type == "petsc_bt"
+
+    def petsc_options(self) -> dict[str, Any]:
+        """Return the SNES/KSP options these settings stand for."""
+        return {
+            "snes_type": "newtonls",
+            "snes_linesearch_type": "bt" if self.uses_petsc_bt else "basic",
+            "snes_rtol": self.rtol,
+            "snes_atol": self.atol,
+            "snes_stol": self.stol,
+            "snes_max_it": self.max_it,
+            "snes_max_funcs": 100 * self.max_it + 100,
+            "ksp_type": "preonly",
+            "pc_type": "lu",
+            "pc_factor_mat_solver_type": self.linear_solver,
+        }
+
+
+@dataclass(frozen=True)
+class NewtonResult:
+    """Outcome of one Newton solve.
+
+    Attributes:
+        converged: SNES reported convergence, the energy is finite and ``min det F > 0``.
+        reason: SNES converged reason (> 0 converged, < 0 diverged, see ``SNESConvergedReason``).
+        iterations: Newton iterations taken.
+        residual_norm: Final residual norm ``|dPi/du|`` [N].
+        energy: Final energy ``Pi(u)`` [J] (``inf`` when inadmissible).
+        min_det_f: Minimum of ``det F`` over all quadrature points [-].
+
+    """
+
+    converged: bool
+    reason: int
+    iterations: int
+    residual_norm: float
+    energy: float
+    min_det_f: float
+
+    def describe(self) -> str:
+        """One-line diagnostic for error messages and logs."""
+        return (f"SNES reason={self.reason}, iterations={self.iterations}, "
+                f"residual={self.residual_norm:.3e}, energy={self.energy:.6e}, "
+                f"min det F={self.min_det_f:.3e}")
+
+
+class EnergyNewton:
+    """Minimise an energy form ``Pi(u)`` with SNES Newton and an energy line search.
+
+    Args:
+        energy: UFL scalar form ``Pi(u)`` (a functional of the Function ``u``).
+        u: The unknown; holds the initial guess on entry to ``solve`` and the result after.
+        bcs: Dirichlet conditions on ``u`` (their values must already be set in ``u``).
+        det_f: UFL expression of ``det F(u)`` whose minimum over quadrature points defines
+            admissibility (``energy = +inf`` where it is ``<= 0``).
+        quadrature_degree: Degree of the points at which ``det_f`` is checked.
+        options: Tolerances and line search switch.
+        energy_scale: Magnitude of the terms summed into ``Pi`` [J], e.g.
+            ``(mu + lambda) |Omega|``; sets the energy noise band of the line search.
+
+    """
+
+    def __init__(self, energy: Any, u: Any, bcs: list[Any], det_f: Any,
+                 quadrature_degree: int, options: NewtonOptions | None = None,
+                 energy_scale: float = 0.0) -> None:
+        self.options = options or NewtonOptions()
+        self.energy_scale = float(energy_scale)
+        self.u = u
+        mesh = u.function_space.mesh
+        self._mesh = mesh
+        self._energy = dolfinx.fem.form(energy)
+        self._det_f = quadrature_expression(det_f, mesh, quadrature_degree)
+        residual = ufl.derivative(energy, u, ufl.TestFunction(u.function_space))
+        jacobian = ufl.derivative(residual, u, ufl.TrialFunction(u.function_space))
+        prefix = f"body_newton_{next(_COUNTER)}_"
+        self.problem = dolfinx.fem.petsc.NonlinearProblem(
+            residual, u, bcs=bcs, J=jacobian, petsc_options_prefix=prefix,
+            petsc_options=self.options.petsc_options())
+        self.problem.solver.setObjective(self._objective)
+        if self.options.line_search and not self.options.uses_petsc_bt:
+            self.problem.solver.setLineSearchPreCheck(self._armijo)
+        self.problem.solver.setConvergenceTest(self._convergence_test)
+        self.backtracks = 0
+        self.flips = 0
+        self._last_step, self._ls_failed, self._fnorm0 = 1.0, False, math.inf
+
+    def energy(self) -> float:
+        """``Pi(u)`` at the current ``u`` [J], ``+inf`` if ``det F <= 0`` anywhere."""
+        if self.min_det_f() <= 0.0:
+            return math.inf
+        value = global_scalar(self._energy)
+        return value if math.isfinite(value) else math.inf
+
+    def min_det_f(self) -> float:
+        """Minimum of ``det F(u)`` over all quadrature points of all cells and ranks."""
+        return global_min_on_cells(self._det_f, self._mesh)
+
+    def _objective(self, _snes: Any, x: Any) -> float:
+        """SNES objective: copy ``x`` into ``u`` (with ghosts) and return ``Pi(u)``."""
+        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        dolfinx.fem.petsc.assign(x, self.u)
+        return self.energy()
+
+    def _armijo(self, x: Any, y: Any) -> None:
+        """SNES pre-check: scale the step ``-y`` by the Armijo ``l`` (module doc); 0 on failure.
+
+        SNES updates ``x <- x - y``, so the Newton step is ``du = -y`` and the directional
+        derivative ``s = dPi.du = -r.y`` with ``r`` the residual at ``x``. Where the Jacobian
+        is indefinite (strong compression) ``s`` can be > 0; the step is then reversed, which
+        makes it a descent direction (counted in ``flips``).
+        """
+        opts, snes = self.options, self.problem.solver
+        energy0 = self._objective(snes, x)
+        noise = opts.energy_roundoff * (abs(energy0) + self.energy_scale)
+        slope = -self.problem.b.dot(y)
+        if slope > 0.0:  # indefinite Jacobian: -du is a descent direction, du is not
+            y.scale(-1.0)
+            slope, self.flips = -slope, self.flips + 1
+        trial = x.duplicate()
+        step = 1.0
+        for _ in range(opts.max_backtracks):
+            x.copy(trial)
+            trial.axpy(-step, y)
+            energy = self._objective(snes, trial)
+            if energy <= energy0 + opts.armijo_c1 * step * min(slope, 0.0):
+                break
+            if abs(energy - energy0) <= noise and self._residual_decreases(trial):
+                break
+            step *= 0.5
+            self.backtracks += 1
+        else:
+            step, self._ls_failed = 0.0, True
+        trial.destroy()
+        self._last_step = step
+        y.scale(step)
+
+    def _residual_decreases(self, trial: Any) -> bool:
+        """Whether ``|r(trial)| < |r(x)|`` (``r(x)`` is SNES's current residual ``b``)."""
+        residual = self.problem.b.duplicate()
+        self.problem.solver.computeFunction(trial, residual)
+        smaller = residual.norm() < self.problem.b.norm()
+        residual.destroy()
+        return bool(smaller)
+
+    def _convergence_test(self, _snes: Any, it: int, norms: tuple[float, float, float]) -> Any:
+        """SNES convergence test: residual (abs/rel), or a small *full* Newton step.
+
+        PETSc's default step test would also fire on a step shrunk by the line search.
+        """
+        xnorm, ynorm, fnorm = norms
+        reason, opts = PETSc.SNES.ConvergedReason, self.options
+        self._fnorm0 = fnorm if it == 0 else self._fnorm0
+        if not math.isfinite(fnorm):
+            return reason.DIVERGED_FNORM_NAN
+        if self._ls_failed:
+            return reason.DIVERGED_LINE_SEARCH
+        if fnorm <= opts.atol:
+            return reason.CONVERGED_FNORM_ABS
+        if it > 0 and fnorm <= opts.rtol * self._fnorm0:
+            return reason.CONVERGED_FNORM_RELATIVE
+        full_step = self._last_step == 1.0 and not opts.uses_petsc_bt
+        if it > 0 and full_step and ynorm <= opts.stol * xnorm:
+            return reason.CONVERGED_SNORM_RELATIVE
+        if it >= opts.max_it:
+            return reason.DIVERGED_MAX_IT
+        return reason.ITERATING
+
+    def solve(self) -> NewtonResult:
+        """Run SNES from the current ``u``; ``u`` holds the last iterate afterwards."""
+        snes = self.problem.solver
+        start = self.min_det_f()
+        if not start > 0.0:
+            return NewtonResult(False, 0, 0, math.nan, math.inf, start)
+        self._last_step, self._ls_failed = 1.0, False
+        self.problem.solve()
+        reason = int(snes.getConvergedReason())
+        min_det = self.min_det_f()
+        energy = self.energy()
+        residual = float(snes.getFunctionNorm())
+        converged = reason > 0 and min_det > 0.0 and math.isfinite(energy) and bool(
+            np.isfinite(residual))
+        return NewtonResult(converged, reason, int(snes.getIterationNumber()), residual,
+                            energy, min_det)

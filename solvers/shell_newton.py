@@ -1,0 +1,480 @@
+"""Newton / SQP minimisation of the shell energy W(x) with a backtracking Armijo line search.
+
+Per frame the shell solves ``min_x W(x)`` (MISSION.md section 6, Remillard & Kry 2013 solve it
+with Newton's method warm-started from the previous frame). Iteration k:
+
+1. evaluate ``W``, ``g = grad W`` and the Hessian ``A`` (exact, Gauss-Newton or projected, see
+   :mod:`models.shell.assembly`) at ``x_k``; stop when ``||g|| <= atol + rtol g_ref``, with
+   ``g_ref`` the initial gradient norm or a given scale;
+2. factorise ``A`` (or ``A + tau I``) with the sparse direct solver, whose symbolic analysis
+   is reused between iterations and frames; when the penalty comes as the low-rank factor
+   ``G`` (``G^T G = 2 k_P H^T H (x) I_3``) solve the augmented system
+   ``[[A, G^T], [G, -I]] [dx; mu] = [-g; 0]`` instead;
+3. if the factorisation fails, reports negative pivots (A not SPD), the direction is not a
+   descent direction (``g . dx >= 0``) or the line search fails, retry with ``A + tau I``,
+   ``tau = tau_0 mean|diag A|`` growing x10 (Nocedal & Wright, Numerical Optimization,
+   2nd ed., Alg. 3.3); each iteration tries ``tau = 0`` first, then shifts starting from the last one / 10;
+4. backtracking line search: largest ``alpha = shrink^j`` with the Armijo condition
+   ``W(x + alpha dx) <= W(x) + c1 alpha g . dx`` (plus a 16 eps |W| round-off allowance, so
+   the final quadratically convergent steps are not rejected for noise in W).
+
+Near a nondegenerate minimum the unshifted Newton step is taken with alpha = 1 and the
+gradient norm converges quadratically, ``||g_{k+1}|| <= C ||g_k||^2``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+import scipy.sparse as sp
+
+from models.errors import InputError, SolverError
+from models.shell.assembly import HESSIAN_MODES
+from solvers.linear import (
+    AugmentedPenaltySolver,
+    FactorReport,
+    LinearSolverOptions,
+    ShiftOptions,
+    SparseDirectSolver,
+)
+
+
+class EnergyEval(Protocol):
+    """What :func:`minimize` reads from an energy evaluation (``models.shell.energy.ShellEval``)."""
+
+    value: float
+    grad: np.ndarray | None
+    hess: sp.csr_matrix | None
+    penalty_factor: sp.csr_matrix | None
+
+
+class ShellEnergyLike(Protocol):
+    """The energy interface :func:`minimize` needs (``models.shell.energy.ShellEnergy``)."""
+
+    @property
+    def n_vertices(self) -> int:
+        """Number of vertices n (the unknowns are (n, 3) positions)."""
+
+    def evaluate(self, x: np.ndarray, order: int = 2, hessian=None) -> EnergyEval:  # noqa: ANN001
+        """Value, gradient (3n,) and Hessian (fixed-pattern CSR) at x."""
+
+    def value(self, x: np.ndarray) -> float:
+        """Energy W(x) only."""
+
+
+@dataclass(frozen=True)
+class ShellNewtonOptions:
+    """Options of the shell Newton / SQP solver.
+
+    Attributes:
+        rtol: Relative gradient tolerance: converged when ``||g|| <= atol + rtol g_ref``.
+        atol: Absolute gradient tolerance (energy / length).
+        gradient_scale: ``g_ref`` (energy / length); 0 uses the initial gradient norm. A
+            warm-started frame should pass a fixed scale (e.g. the first frame's ``||g_0||``),
+            otherwise an already good start is driven to an over-tight tolerance.
+        max_iterations: Newton iterations before returning unconverged (best state kept).
+        hessian: Hessian mode "exact" | "gauss_newton" | "projected"; "" uses the energy's own
+            ``hessian_mode``.
+        far_hessian: Optional PSD mode ("gauss_newton" | "projected") used while
+            ``||g|| > switch_rtol g_ref`` before switching to ``hessian`` (the "mixed" strategy:
+            PSD models make fast progress far from the minimum, the exact Hessian converges
+            quadratically near it); "" = always ``hessian``.
+        switch_rtol: Relative gradient norm below which ``far_hessian`` hands over.
+        linear: Sparse direct solver of the Newton system (assembled penalty).
+        augmented_linear: Solver of the augmented system when the energy returns the penalty as
+            a low-rank factor G (must be "ldlt" or "lu").
+        armijo_c1: Sufficient-decrease constant c1 of the Armijo condition, in (0, 1/2).
+        shrink: Step reduction factor of the backtracking line search, in (0, 1).
+        max_line_search: Backtracking steps before the step is declared failed.
+        shift: Diagonal shift schedule ``A + tau I`` (fallback for indefinite / failed
+            factorisations and non-descent directions).
+        descent_tolerance: A direction is a descent direction if
+            ``-g . dx >= descent_tolerance ||g|| ||dx||`` (cosine of the angle, dimensionless).
+
+    """
+
+    rtol: float = 1e-8
+    atol: float = 0.0
+    gradient_scale: float = 0.0
+    max_iterations: int = 200
+    hessian: str = ""
+    far_hessian: str = ""
+    switch_rtol: float = 1e-3
+    linear: LinearSolverOptions = field(default_factory=LinearSolverOptions)
+    augmented_linear: LinearSolverOptions = field(
+        default_factory=lambda: LinearSolverOptions(symmetric="ldlt"))
+    armijo_c1: float = 1e-4
+    shrink: float = 0.5
+    max_line_search: int = 40
+    shift: ShiftOptions = field(default_factory=ShiftOptions)
+    descent_tolerance: float = 1e-10
+
+    def __post_init__(self) -> None:
+        _positive_checks(self)
+        for name in ("hessian", "far_hessian"):
+            value = getattr(self, name)
+            if value and value not in HESSIAN_MODES:
+                raise InputError(f"ShellNewtonOptions.{name}: expected '' or one of "
+                                 f"{list(HESSIAN_MODES)}, got {value!r}")
+        if not 0 < self.armijo_c1 < 0.5:
+            raise InputError(f"ShellNewtonOptions.armijo_c1: must be in (0, 0.5), got "
+                             f"{self.armijo_c1!r}")
+        if not 0 < self.shrink < 1:
+            raise InputError(f"ShellNewtonOptions.shrink: must be in (0, 1), got {self.shrink!r}")
+        if self.augmented_linear.symmetric == "cholesky":
+            raise InputError("ShellNewtonOptions.augmented_linear.symmetric: the augmented "
+                             "system is indefinite; use 'ldlt' or 'lu'")
+
+
+def _positive_checks(opts: ShellNewtonOptions) -> None:
+    """Validate the tolerances and counts of :class:`ShellNewtonOptions`."""
+    for name in ("rtol", "atol", "gradient_scale", "descent_tolerance", "switch_rtol"):
+        value = getattr(opts, name)
+        if not (np.isfinite(value) and value >= 0):
+            raise InputError(f"ShellNewtonOptions.{name}: must be finite and >= 0, got {value!r}")
+    if opts.rtol == 0 and opts.atol == 0:
+        raise InputError("ShellNewtonOptions.rtol: rtol and atol cannot both be 0")
+    for name in ("max_iterations", "max_line_search"):
+        if getattr(opts, name) < 1:
+            raise InputError(f"ShellNewtonOptions.{name}: must be >= 1, got "
+                             f"{getattr(opts, name)!r}")
+
+
+@dataclass(frozen=True)
+class NewtonIteration:
+    """One Newton iteration.
+
+    Attributes:
+        energy: W at the start of the iteration.
+        grad_norm: ||g|| at the start of the iteration.
+        step: Accepted line-search step alpha.
+        line_search_steps: Step reductions before acceptance (0 = full step).
+        shift: Diagonal shift tau of the accepted direction (0 = plain Newton).
+        factorizations: Factorisations in this iteration (1 + rejected attempts).
+        negative_pivots: Negative pivots of the first (unshifted) factorisation, None if
+            unknown (LU backends).
+        directional_derivative: g . dx of the accepted direction (< 0).
+
+    """
+
+    energy: float
+    grad_norm: float
+    step: float
+    line_search_steps: int
+    shift: float
+    factorizations: int
+    negative_pivots: int | None
+    directional_derivative: float
+
+
+@dataclass(frozen=True)
+class ShellSolveReport:
+    """What :func:`minimize` did.
+
+    Attributes:
+        converged: Gradient tolerance met.
+        reason: "gradient tolerance", "max_iterations", or the failure diagnostic.
+        iterations: Newton iterations performed (accepted steps).
+        energy: Final W.
+        grad_norm: Final ||g||.
+        tolerance: The gradient tolerance ``atol + rtol g_ref`` that was used.
+        history: One :class:`NewtonIteration` per iteration.
+        time_evaluate: Seconds in value/gradient/Hessian evaluations (order 2).
+        time_line_search: Seconds in line-search energy evaluations.
+        time_factorize: Seconds in factorisations (analysis + numeric).
+        time_analysis: Seconds of that in the symbolic analysis.
+        time_solve: Seconds in triangular solves.
+        time_total: Wall time of the whole solve.
+
+    """
+
+    converged: bool
+    reason: str
+    iterations: int
+    energy: float
+    grad_norm: float
+    tolerance: float
+    history: tuple[NewtonIteration, ...] = ()
+    time_evaluate: float = 0.0
+    time_line_search: float = 0.0
+    time_factorize: float = 0.0
+    time_analysis: float = 0.0
+    time_solve: float = 0.0
+    time_total: float = 0.0
+
+    @property
+    def grad_norms(self) -> np.ndarray:
+        """||g_k|| for k = 0..iterations (the last one is the final gradient)."""
+        return np.array([it.grad_norm for it in self.history] + [self.grad_norm])
+
+    @property
+    def energies(self) -> np.ndarray:
+        """W_k for k = 0..iterations."""
+        return np.array([it.energy for it in self.history] + [self.energy])
+
+    @property
+    def shifted_iterations(self) -> int:
+        """Iterations whose accepted direction needed a diagonal shift."""
+        return sum(1 for it in self.history if it.shift > 0)
+
+    @property
+    def line_search_steps(self) -> int:
+        """Total step reductions over all iterations."""
+        return sum(it.line_search_steps for it in self.history)
+
+    def summary(self) -> str:
+        """One line: converged flag, iterations, energy, gradient, shifts, timings."""
+        return (f"converged={self.converged} ({self.reason}) it={self.iterations} "
+                f"W={self.energy:.12e} |g|={self.grad_norm:.3e} shifts={self.shifted_iterations} "
+                f"ls={self.line_search_steps} t_eval={self.time_evaluate:.3f}s "
+                f"t_fact={self.time_factorize:.3f}s t_solve={self.time_solve:.3f}s "
+                f"t_total={self.time_total:.3f}s")
+
+
+class ShellSolveError(SolverError):
+    """No progress was possible; carries the best state and the report so far.
+
+    Attributes:
+        x: Best positions (n, 3) reached.
+        report: The :class:`ShellSolveReport` up to the failure.
+
+    """
+
+    def __init__(self, message: str, x: np.ndarray, report: ShellSolveReport) -> None:
+        super().__init__(message)
+        self.x = x
+        self.report = report
+
+
+@dataclass
+class _Timers:
+    """Mutable wall-time accumulators of one solve (seconds)."""
+
+    evaluate: float = 0.0
+    line_search: float = 0.0
+    start: float = field(default_factory=time.perf_counter)
+
+
+@dataclass(frozen=True)
+class _Step:
+    """An accepted Newton step."""
+
+    x: np.ndarray
+    energy: float
+    record: NewtonIteration
+
+
+class _LinearSystem:
+    """Factorise / solve the Newton system, plain or augmented, solver built once."""
+
+    def __init__(self, options: ShellNewtonOptions) -> None:
+        self.options = options
+        self.plain: SparseDirectSolver | None = None
+        self.augmented: AugmentedPenaltySolver | None = None
+
+    def factorize(self, ev: EnergyEval, tau: float) -> FactorReport:
+        """Factorise ``A + tau I`` (or its augmented form when ``ev.penalty_factor`` is set)."""
+        hess, g = ev.hess, ev.penalty_factor
+        if hess is None:
+            raise InputError("energy.evaluate(order=2) returned no Hessian")
+        if g is None:
+            if self.plain is None:
+                self.plain = SparseDirectSolver(hess, self.options.linear)
+            return self.plain.factorize(hess, tau)
+        if self.augmented is None:
+            self.augmented = AugmentedPenaltySolver(hess, g, self.options.augmented_linear)
+        return self.augmented.factorize(hess, g, tau)
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """Solve with the last factorisation."""
+        solver = self.augmented if self.augmented is not None else self.plain
+        assert solver is not None  # factorize() ran first (internal invariant)
+        return solver.solve(rhs)
+
+    def _solvers(self) -> list[SparseDirectSolver]:
+        """Return the underlying sparse solvers built so far."""
+        out = [self.plain] if self.plain is not None else []
+        return out + ([self.augmented.solver] if self.augmented is not None else [])
+
+    def times(self) -> tuple[float, float, float]:
+        """Accumulated (factorise, analysis, solve) seconds of every solver."""
+        stats = [s.stats for s in self._solvers()]
+        return (sum(s.analysis_time + s.numeric_time for s in stats),
+                sum(s.analysis_time for s in stats), sum(s.solve_time for s in stats))
+
+
+def _grad_norm(ev: EnergyEval) -> float:
+    """Euclidean norm of the gradient of an order >= 1 evaluation."""
+    if ev.grad is None:
+        raise InputError("energy.evaluate(order=2) returned no gradient")
+    return float(np.linalg.norm(ev.grad))
+
+
+def _shift_candidates(previous: float, scale: float, shift: ShiftOptions) -> list[float]:
+    """Shifts to try this iteration: 0 first, then the schedule, started near the last shift.
+
+    The unshifted Hessian is always tried first, so the iteration is plain Newton (and
+    converges quadratically) as soon as the Hessian is positive definite. After an iteration
+    that needed ``tau_prev`` the schedule starts at ``tau_prev / growth`` instead of
+    ``initial * scale``, which saves the small shifts that failed last time.
+    """
+    return [0.0, *shift.schedule(scale, start=previous / shift.growth).tolist()]
+
+
+class ShellNewtonSolver:
+    """Newton / SQP solver bound to one energy; keeps its factorisation across frames.
+
+    Args:
+        energy: The shell energy (fixed Hessian pattern).
+        options: Solver options.
+
+    """
+
+    def __init__(self, energy: ShellEnergyLike, options: ShellNewtonOptions | None = None
+                 ) -> None:
+        self.energy = energy
+        self.options = options or ShellNewtonOptions()
+        self.linear = _LinearSystem(self.options)
+        self._last_shift = 0.0
+
+    def _evaluate(self, x: np.ndarray, timers: _Timers, mode: str) -> EnergyEval:
+        """Order-2 evaluation with Hessian ``mode`` ("" = the energy's default), timed."""
+        start = time.perf_counter()
+        ev = self.energy.evaluate(x.reshape(-1, 3), order=2, hessian=mode or None)
+        timers.evaluate += time.perf_counter() - start
+        if not (np.isfinite(ev.value) and ev.grad is not None and np.all(np.isfinite(ev.grad))):
+            raise SolverError(f"shell energy is not finite at the current state (W={ev.value})")
+        return ev
+
+    def minimize(self, x0: np.ndarray) -> tuple[np.ndarray, ShellSolveReport]:
+        """Minimise W from ``x0`` ((n, 3) or flat); return ``(x (n, 3), report)``.
+
+        Raises:
+            ShellSolveError: no direction/shift gave an Armijo step (carries best x, report).
+            SolverError: W or its gradient is not finite at x0.
+
+        """
+        x = np.array(x0, dtype=np.float64).reshape(-1)
+        if x.size != 3 * self.energy.n_vertices:
+            raise InputError(f"x0: expected {self.energy.n_vertices} vertices, got shape "
+                             f"{np.shape(x0)}")
+        timers, history = _Timers(), list[NewtonIteration]()
+        opts = self.options
+        ev = self._evaluate(x, timers, opts.far_hessian or opts.hessian)
+        tol = self._tolerance(_grad_norm(ev))
+        switch = opts.switch_rtol * (opts.gradient_scale or _grad_norm(ev))
+        if opts.far_hessian and _grad_norm(ev) <= switch:
+            ev = self._evaluate(x, timers, opts.hessian)
+        while _grad_norm(ev) > tol:
+            if len(history) >= self.options.max_iterations:
+                return x.reshape(-1, 3), self._report(False, "max_iterations", ev, tol,
+                                                      history, timers)
+            step = self._iterate(x, ev, timers)
+            if step is None:
+                report = self._report(False, "no descent step after all shifts", ev, tol,
+                                      history, timers)
+                raise ShellSolveError(f"shell Newton: no Armijo step at iteration "
+                                      f"{len(history)}; {report.summary()}", x.reshape(-1, 3),
+                                      report)
+            history.append(step.record)
+            x = step.x
+            ev = self._evaluate(x, timers, self._mode(_grad_norm(ev), switch))
+        return x.reshape(-1, 3), self._report(True, "gradient tolerance", ev, tol, history,
+                                              timers)
+
+    def _mode(self, grad_norm: float, switch: float) -> str:
+        """Hessian mode of the next evaluation: ``far_hessian`` until ``||g|| <= switch``.
+
+        Decided on the gradient of the previous iterate (the new one is not known before
+        evaluating it), so the switch happens one iteration after crossing the threshold.
+        """
+        if self.options.far_hessian and grad_norm > switch:
+            return self.options.far_hessian
+        return self.options.hessian
+
+    def _tolerance(self, g0: float) -> float:
+        """``atol + rtol g_ref`` with ``g_ref`` the scale option or the initial gradient."""
+        scale = self.options.gradient_scale or g0
+        return self.options.atol + self.options.rtol * scale
+
+    def _iterate(self, x: np.ndarray, ev: EnergyEval, timers: _Timers) -> _Step | None:
+        """One Newton iteration: shifted attempts until a direction passes the line search."""
+        assert ev.hess is not None and ev.grad is not None  # order-2 evaluation
+        scale = float(np.mean(np.abs(ev.hess.diagonal()))) or 1.0
+        first_negatives: list[int | None] = []
+        for attempt, tau in enumerate(_shift_candidates(self._last_shift, scale,
+                                                        self.options.shift)):
+            report = self.linear.factorize(ev, tau)
+            first_negatives.append(report.negative_pivots)
+            if not report.usable_spd:
+                continue
+            dx = self.linear.solve(-ev.grad)
+            slope = float(ev.grad @ dx)
+            if not self._is_descent(ev.grad, dx, slope):
+                continue
+            found = self._line_search(x, ev.value, dx, slope, timers)
+            if found is not None:
+                self._last_shift = tau
+                alpha, energy, reductions = found
+                record = NewtonIteration(ev.value, float(np.linalg.norm(ev.grad)), alpha,
+                                         reductions, tau, attempt + 1, first_negatives[0], slope)
+                return _Step(x + alpha * dx, energy, record)
+        return None
+
+    def _is_descent(self, g: np.ndarray, dx: np.ndarray, slope: float) -> bool:
+        """``-g . dx >= descent_tolerance ||g|| ||dx||`` and dx finite."""
+        if not np.all(np.isfinite(dx)):
+            return False
+        return -slope >= self.options.descent_tolerance * np.linalg.norm(g) * np.linalg.norm(dx)
+
+    def _line_search(self, x: np.ndarray, w0: float, dx: np.ndarray, slope: float,
+                     timers: _Timers) -> tuple[float, float, int] | None:
+        """Backtracking Armijo: ``(alpha, W(x + alpha dx), reductions)`` or None."""
+        start = time.perf_counter()
+        noise = 16.0 * np.finfo(float).eps * abs(w0)
+        alpha = 1.0
+        try:
+            for j in range(self.options.max_line_search):
+                w = self.energy.value((x + alpha * dx).reshape(-1, 3))
+                if np.isfinite(w) and w <= w0 + self.options.armijo_c1 * alpha * slope + noise:
+                    return alpha, float(w), j
+                alpha *= self.options.shrink
+            return None
+        finally:
+            timers.line_search += time.perf_counter() - start
+
+    def _report(self, converged: bool, reason: str, ev: EnergyEval, tol: float,
+                history: list[NewtonIteration], timers: _Timers) -> ShellSolveReport:
+        """Freeze the run into a :class:`ShellSolveReport`."""
+        factorize, analysis, solve = self.linear.times()
+        return ShellSolveReport(
+            converged=converged, reason=reason, iterations=len(history), energy=ev.value,
+            grad_norm=_grad_norm(ev), tolerance=tol, history=tuple(history),
+            time_evaluate=timers.evaluate, time_line_search=timers.line_search,
+            time_factorize=factorize, time_analysis=analysis, time_solve=solve,
+            time_total=time.perf_counter() - timers.start)
+
+
+def minimize(energy: ShellEnergyLike, x0: np.ndarray,
+             options: ShellNewtonOptions | None = None) -> tuple[np.ndarray, ShellSolveReport]:
+    """Minimise the shell energy from ``x0`` (warm start); see the module docstring.
+
+    For a sequence of frames keep one :class:`ShellNewtonSolver` instead, so the symbolic
+    factorisation is reused across frames too.
+
+    Args:
+        energy: ``models.shell.energy.ShellEnergy`` (or anything with ``evaluate``/``value``).
+        x0: Start positions (n, 3).
+        options: Solver options.
+
+    Returns:
+        ``(x, report)`` with x the (n, 3) minimiser.
+
+    Raises:
+        ShellSolveError: no progress possible (carries the best state and the report).
+
+    """
+    return ShellNewtonSolver(energy, options).minimize(x0)

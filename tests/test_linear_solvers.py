@@ -1,0 +1,199 @@
+"""Sparse direct solvers on shell-like systems: accuracy, reuse, augmented penalty, inertia."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
+
+from meshes.shells import grid_plate
+from models.errors import InputError
+from models.shell.dofs import stencil_dofs
+from models.shell.topology import ShellTopology
+from solvers.linear import (
+    AugmentedPenaltySolver,
+    LinearSolverOptions,
+    ShiftOptions,
+    SparseDirectSolver,
+    true_residual,
+)
+
+CASES = [
+    ("mumps", "cholesky", "aij"),
+    ("mumps", "cholesky", "sbaij"),
+    ("mumps", "ldlt", "aij"),
+    ("mumps", "ldlt", "sbaij"),
+    ("mumps", "lu", "aij"),
+    ("petsc", "cholesky", "aij"),
+    ("superlu_dist", "lu", "aij"),
+    ("scipy", "cholesky", "aij"),
+    ("scipy", "lu", "aij"),
+]
+PETSC_REUSE = [c for c in CASES if c[0] in ("mumps", "petsc")]
+
+
+def _hinge_stencils(nx: int, ny: int) -> tuple[np.ndarray, int]:
+    points, faces = grid_plate(nx, ny)
+    topo = ShellTopology.from_faces(faces, len(points))
+    return topo.hinges, len(points)
+
+
+def shell_like(nx: int, ny: int, rng: np.random.Generator, ridge: float = 1e-3) -> sp.csr_matrix:
+    """SPD matrix with the bending pattern: sum of random rank-6 PSD 12x12 hinge blocks + ridge.
+
+    Like a shell Hessian it is a sum of PSD stencil blocks, each with a null space (rigid
+    modes), made definite by a small diagonal (a penalty-like term).
+    """
+    hinges, n = _hinge_stencils(nx, ny)
+    dofs = stencil_dofs(hinges)
+    b = rng.standard_normal((len(hinges), 12, 6))
+    blocks = b @ b.transpose(0, 2, 1)
+    rows = np.repeat(dofs, 12, axis=1).ravel()
+    cols = np.tile(dofs, (1, 12)).ravel()
+    a = sp.coo_matrix((blocks.ravel(), (rows, cols)), shape=(3 * n, 3 * n)).tocsr()
+    a = a + ridge * sp.identity(3 * n, format="csr")
+    a.sum_duplicates()
+    a.sort_indices()
+    return a
+
+
+def same_pattern(a: sp.csr_matrix, data: np.ndarray) -> sp.csr_matrix:
+    return sp.csr_matrix((data, a.indices, a.indptr), shape=a.shape)
+
+
+def options(case: tuple[str, str, str]) -> LinearSolverOptions:
+    return LinearSolverOptions(backend=case[0], symmetric=case[1], matrix_format=case[2])
+
+
+@pytest.mark.parametrize("case", CASES, ids=["-".join(c) for c in CASES])
+def test_solve_and_refactorise(case: tuple[str, str, str], rng: np.random.Generator) -> None:
+    a = shell_like(12, 10, rng)
+    b = rng.standard_normal(a.shape[0])
+    solver = SparseDirectSolver(a, options(case))
+    first = solver.factorize(a)
+    x = solver.solve(b)
+    res1 = true_residual(a, x, b)
+    # new values, same pattern: a different SPD matrix with the same sparsity
+    a2 = same_pattern(a, a.data * (1.0 + 0.5 * rng.random(a.nnz)))
+    a2 = ((a2 + a2.T) * 0.5).tocsr()
+    a2 = same_pattern(a, a2[a.nonzero()].A1) if a2.nnz != a.nnz else a2
+    second = solver.factorize(a2)
+    x2 = solver.solve(b)
+    res2 = true_residual(a2, x2, b)
+    ref = sla.spsolve(a2.tocsc(), b)
+    print(f"{case}: residual first {res1:.2e} refactorised {res2:.2e} "
+          f"|x2-ref|/|ref| {np.linalg.norm(x2 - ref) / np.linalg.norm(ref):.2e}")
+    assert first.success and second.success
+    assert res1 < 1e-10 and res2 < 1e-10
+    assert np.linalg.norm(x2 - ref) < 1e-8 * np.linalg.norm(ref)
+    assert np.linalg.norm(x2 - x) > 1e-3 * np.linalg.norm(x)  # the new values were used
+
+
+@pytest.mark.parametrize("case", PETSC_REUSE, ids=["-".join(c) for c in PETSC_REUSE])
+def test_second_factorisation_reuses_analysis(case: tuple[str, str, str],
+                                              rng: np.random.Generator) -> None:
+    a = shell_like(30, 30, rng)
+    solver = SparseDirectSolver(a, options(case))
+    reports = [solver.factorize(same_pattern(a, a.data * s)) for s in (1.0, 2.0, 3.0)]
+    for r in reports:
+        print(f"{case}: analysis {r.analysis_time:.4f} s numeric {r.numeric_time:.4f} s "
+              f"reused {r.reused_analysis}")
+    assert not reports[0].reused_analysis and reports[0].analysis_time > 0
+    assert all(r.reused_analysis and r.analysis_time == 0 for r in reports[1:])
+    b = rng.standard_normal(a.shape[0])
+    assert true_residual(same_pattern(a, a.data * 3.0), solver.solve(b), b) < 1e-10
+
+
+def penalty_factor(n_vertices: int, clusters: int, rng: np.random.Generator) -> sp.csr_matrix:
+    """G = sqrt(2 k_P) (H kron I_3) with H rows of normalised random weights over vertex sets."""
+    rows, cols, vals = [], [], []
+    for c in range(clusters):
+        members = rng.choice(n_vertices, size=12, replace=False)
+        w = rng.random(12)
+        rows.append(np.full(12, c))
+        cols.append(members)
+        vals.append(w / w.sum())
+    h = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(clusters, n_vertices))
+    return (np.sqrt(2.0 * 1e3) * sp.kron(h, sp.identity(3))).tocsr()
+
+
+@pytest.mark.parametrize("backend,symmetric", [("mumps", "ldlt"), ("mumps", "lu"),
+                                               ("superlu_dist", "lu"), ("scipy", "lu")])
+def test_augmented_equals_assembled(backend: str, symmetric: str,
+                                    rng: np.random.Generator) -> None:
+    a = shell_like(12, 10, rng, ridge=0.0)  # singular alone: only A + G^T G is definite
+    n_vertices = a.shape[0] // 3
+    g = penalty_factor(n_vertices, 40, rng)
+    rhs = rng.standard_normal(a.shape[0])
+    aug = AugmentedPenaltySolver(a, g, LinearSolverOptions(backend=backend, symmetric=symmetric))
+    report = aug.factorize(a, g)
+    dx = aug.solve(rhs)
+    full = (a + g.T @ g).tocsc()
+    ref = sla.spsolve(full, rhs)
+    rel = np.linalg.norm(dx - ref) / np.linalg.norm(ref)
+    res = true_residual(full, dx, rhs)
+    print(f"augmented {backend}/{symmetric}: |dx-ref|/|ref| {rel:.2e} residual {res:.2e} "
+          f"negative pivots {report.negative_pivots} (m = {g.shape[0]})")
+    assert report.success
+    assert rel < 1e-10 and res < 1e-10
+    if backend == "mumps" and symmetric == "ldlt":
+        assert report.negative_pivots == g.shape[0] and report.indefinite is False
+    # refactorisation with new values of both blocks and the same patterns
+    g2 = sp.csr_matrix((g.data * 2.0, g.indices, g.indptr), shape=g.shape)
+    aug.factorize(a, g2)
+    ref2 = sla.spsolve((a + g2.T @ g2).tocsc(), rhs)
+    assert np.linalg.norm(aug.solve(rhs) - ref2) < 1e-10 * np.linalg.norm(ref2)
+
+
+INDEFINITE = [("mumps", "cholesky", "aij"), ("mumps", "cholesky", "sbaij"),
+              ("mumps", "ldlt", "aij"), ("petsc", "cholesky", "aij"),
+              ("scipy", "cholesky", "aij")]
+
+
+@pytest.mark.parametrize("case", INDEFINITE, ids=["-".join(c) for c in INDEFINITE])
+def test_indefinite_detected_and_shifted(case: tuple[str, str, str],
+                                         rng: np.random.Generator) -> None:
+    a = shell_like(6, 5, rng)
+    eig = np.linalg.eigvalsh(a.toarray())
+    sigma = 0.5 * (eig[6] + eig[7])  # exactly 7 eigenvalues below sigma
+    indefinite = (a - sigma * sp.identity(a.shape[0])).tocsr()
+    indefinite.sort_indices()
+    solver = SparseDirectSolver(indefinite, options(case))
+    shift = ShiftOptions(initial=1e-6, growth=10.0, max_shifts=12)
+    reports = solver.factorize_shifted(indefinite, shift)
+    lam_min = eig[0] - sigma
+    print(f"{case}: lambda_min {lam_min:.3e}; attempts " + ", ".join(
+        f"(tau {r.shift:.1e}, neg {r.negative_pivots}, ok {r.success})" for r in reports))
+    assert reports[0].negative_pivots == 7 and reports[0].indefinite
+    # every attempt's pivot count is the inertia of the shifted matrix (Sylvester)
+    for r in reports:
+        assert r.negative_pivots == int(np.count_nonzero(eig - sigma + r.shift < 0))
+    last = reports[-1]
+    assert last.usable_spd and last.negative_pivots == 0 and last.shift > 0
+    assert lam_min + last.shift > 0 > lam_min + last.shift / shift.growth
+    b = rng.standard_normal(a.shape[0])
+    shifted = indefinite + last.shift * sp.identity(a.shape[0])
+    assert true_residual(shifted, solver.solve(b), b) < 1e-10
+
+
+def test_pattern_and_option_errors(rng: np.random.Generator) -> None:
+    a = shell_like(4, 4, rng)
+    solver = SparseDirectSolver(a, LinearSolverOptions(backend="scipy"))
+    other = (a + sp.random(*a.shape, density=0.01, random_state=1)).tocsr()
+    with pytest.raises(InputError, match="pattern"):
+        solver.factorize(other)
+    with pytest.raises(InputError, match="LinearSolverOptions.backend"):
+        LinearSolverOptions(backend="cholmod")
+    with pytest.raises(InputError, match="LinearSolverOptions.symmetric"):
+        LinearSolverOptions(backend="superlu_dist", symmetric="cholesky")
+    with pytest.raises(InputError, match="LinearSolverOptions.ordering"):
+        LinearSolverOptions(backend="mumps", ordering="rcm")
+    with pytest.raises(InputError, match="LinearSolverOptions.matrix_format"):
+        LinearSolverOptions(backend="petsc", matrix_format="sbaij")
+    with pytest.raises(InputError, match="ShiftOptions.growth"):
+        ShiftOptions(growth=1.0)
+    with pytest.raises(InputError, match="symmetric"):
+        AugmentedPenaltySolver(a, penalty_factor(a.shape[0] // 3, 3, rng),
+                               LinearSolverOptions(symmetric="cholesky"))

@@ -1,0 +1,276 @@
+"""The frame loop of ``wrinkles run``: mesh, body, then per frame a list of stages and output.
+
+Algorithm 1 of the draft (Rémillard & Kry 2013 embedded thin shells) advances the coarse body
+and then the embedded shell once per frame. Here one frame runs the *stages* in order, each a
+callable ``stage(frame) -> dict`` that advances its part of the model and returns the numbers
+it wants in the frame record. The body stage is the only one today; the shell stage plugs in
+after it (``stages.append(shell_stage)``) without touching the loop.
+
+Parallel runs: rank 0 builds or reads the mesh (gmsh and meshio are serial) and dolfinx
+distributes it; an ``InputError`` on rank 0 is broadcast so every rank raises the same error
+and no rank waits forever in a collective call.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import meshes
+from meshes.tetmesh import TetMesh
+from models.backend import MPI, dolfinx, mesh_from_arrays
+from models.body import Body, StepReport
+from models.errors import InputError, SolverError, WrinklesError
+from wrinkles.output import (
+    SUMMARY_NAME,
+    XDMF_NAME,
+    XdmfSeries,
+    summary_document,
+    write_json_atomic,
+)
+from wrinkles.scene import Scene, SceneMesh, mesh_builder, scene_dict
+
+SUMMED: tuple[str, ...] = ("newton_iterations", "halvings", "substeps")
+"""``StepReport`` counts that add up over the steps of a frame."""
+
+Stage = Callable[[int], Mapping[str, Any]]
+"""One part of a frame: ``stage(frame)`` advances its model and returns record entries."""
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """What one frame did (one entry of ``summary.json``'s ``frames``).
+
+    Attributes:
+        frame: frame number, 1-based.
+        time: physical time at the end of the frame [s].
+        newton_iterations: body Newton iterations in this frame (all steps and halvings).
+        energy: total body energy: kinetic + elastic + gravity + contact [J].
+        min_det_f: minimum of det F over the body's quadrature points [-].
+        wall_time: wall time of the frame, output included [s].
+        stage_times: wall time per stage [s].
+        details: further numbers returned by the stages (energy split, halvings, ...).
+
+    """
+
+    frame: int
+    time: float
+    newton_iterations: int
+    energy: float
+    min_det_f: float
+    wall_time: float
+    stage_times: dict[str, float] = field(default_factory=dict)
+    details: dict[str, Any] = field(default_factory=dict)
+
+    def progress_line(self, n_frames: int) -> str:
+        """Return the one-line progress report printed by rank 0."""
+        return (f"frame {self.frame:4d}/{n_frames}  t={self.time:9.4f} s  "
+                f"newton={self.newton_iterations:3d}  energy={self.energy: .6e} J  "
+                f"min detF={self.min_det_f:.4f}  wall={self.wall_time:7.3f} s")
+
+
+# --------------------------------------------------------------------------------------------
+# Collective error handling
+
+
+def on_root[T](comm: MPI.Comm, make: Callable[[], T]) -> T | None:
+    """Run ``make()`` on rank 0 only; re-raise its ``WrinklesError`` on every rank.
+
+    Returns:
+        ``make()``'s value on rank 0, ``None`` elsewhere.
+
+    """
+    value: T | None = None
+    failure: tuple[type[WrinklesError], str] | None = None
+    if comm.rank == 0:
+        try:
+            value = make()
+        except WrinklesError as exc:
+            failure = (type(exc), str(exc))
+    failure = comm.bcast(failure, root=0)
+    if failure is not None:
+        raise failure[0](failure[1])
+    return value
+
+
+# --------------------------------------------------------------------------------------------
+# Mesh and body
+
+
+def read_tet_mesh(spec: SceneMesh) -> TetMesh:
+    """Build the coarse mesh with its gmsh builder, or read and validate its file (serial)."""
+    if spec.builder:
+        return mesh_builder(spec.builder)(**spec.params)
+    return meshes.load(spec.file)
+
+
+def distributed_mesh(spec: SceneMesh, comm: MPI.Comm) -> dolfinx.mesh.Mesh:
+    """Build the scene mesh on rank 0 and distribute it over ``comm`` as a dolfinx mesh."""
+    tet = on_root(comm, lambda: read_tet_mesh(spec))
+    if tet is None:
+        return mesh_from_arrays(comm, np.zeros((0, 3)), np.zeros((0, 4), dtype=np.int64))
+    return mesh_from_arrays(comm, tet.points, tet.tets)
+
+
+def mesh_facts(mesh: dolfinx.mesh.Mesh, body: Body) -> dict[str, int]:
+    """Global sizes of the mesh and the body's unknowns."""
+    imap = mesh.topology.index_map
+    return {"vertices": imap(0).size_global, "cells": imap(mesh.topology.dim).size_global,
+            "dofs": body.V.dofmap.index_map.size_global * body.V.dofmap.index_map_bs}
+
+
+def body_stage(body: Body, steps: int) -> Stage:
+    """Make the stage that advances the body by ``steps`` steps of ``body.options.dt``."""
+
+    def stage(frame: int) -> dict[str, Any]:
+        reports = [body.step() for _ in range(steps)]
+        return body_record(reports)
+
+    return stage
+
+
+def body_record(reports: list[StepReport]) -> dict[str, Any]:
+    """Merge a frame's body step reports into record entries.
+
+    Counts (Newton iterations, halvings, sub-steps) are summed, ``min det F`` is the minimum
+    over the steps, everything else (time, energy and its split) is the last step's.
+    """
+    record = dataclasses.asdict(reports[-1])
+    record.pop("converged", None)
+    for name in SUMMED:
+        record[name] = sum(getattr(r, name) for r in reports)
+    record["min_det_f"] = min(r.min_det_f for r in reports)
+    return record
+
+
+# --------------------------------------------------------------------------------------------
+# The run
+
+
+@dataclass
+class Run:
+    """A scene being run: the body, its stages, the output directory and the records.
+
+    Attributes:
+        scene: the resolved scene.
+        out: output directory.
+        body: the coarse body.
+        stages: ``(name, stage)`` pairs run in order every frame; the body stage first.
+        series: the body's XDMF time series (``None`` when ``output.xdmf`` is off).
+        records: one record per completed frame.
+        facts: run facts for the summary (ranks, sizes, status, start time).
+
+    """
+
+    scene: Scene
+    out: Path
+    body: Body
+    stages: list[tuple[str, Stage]]
+    series: XdmfSeries | None = None
+    records: list[FrameRecord] = field(default_factory=list)
+    facts: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def comm(self) -> MPI.Comm:
+        """The communicator of the body's mesh."""
+        return self.body.mesh.comm
+
+    @property
+    def n_frames(self) -> int:
+        """Frames this run will compute."""
+        return self.scene.time.n_frames(self.scene.body.dt)
+
+
+def prepare(scene: Scene, out: Path, comm: MPI.Comm) -> Run:
+    """Create the output directory, the distributed mesh, the body and its stage (collective)."""
+    on_root(comm, lambda: make_output_dir(out))
+    mesh = distributed_mesh(scene.mesh, comm)
+    body = Body(mesh, scene.material, scene.body, scene.newton)
+    stages: list[tuple[str, Stage]] = [("body", body_stage(body, scene.time.steps_per_frame))]
+    series = XdmfSeries(out / XDMF_NAME, output_fields(body)) if scene.output.xdmf else None
+    run = Run(scene, out, body, stages, series)
+    run.facts = {"ranks": comm.size, "status": "running", "frames_planned": run.n_frames,
+                 "started": datetime.now(UTC).isoformat(timespec="seconds"),
+                 "mesh": mesh_facts(mesh, body)}
+    if series is not None:
+        series.write(body.t)
+    write_summary(run)
+    return run
+
+
+def make_output_dir(out: Path) -> None:
+    """Create ``out`` (and parents); InputError if that is impossible."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--out {out}: cannot create the output directory ({exc})") from None
+
+
+def output_fields(body: Body) -> dict[str, Any]:
+    """Return the body fields written to the XDMF file, by output name."""
+    return {"displacement": body.u, "velocity": body.v}
+
+
+def run_frame(run: Run, frame: int) -> FrameRecord:
+    """Run every stage once, then write the frame's output (collective)."""
+    start = time.perf_counter()
+    values: dict[str, Any] = {}
+    stage_times: dict[str, float] = {}
+    for name, stage in run.stages:
+        t0 = time.perf_counter()
+        values.update(stage(frame))
+        stage_times[name] = time.perf_counter() - t0
+    if run.series is not None and run.scene.output.writes_frame(frame, run.n_frames):
+        run.series.write(run.body.t)
+    return make_record(frame, values, stage_times, time.perf_counter() - start)
+
+
+def make_record(frame: int, values: dict[str, Any], stage_times: dict[str, float],
+                wall: float) -> FrameRecord:
+    """Split stage values into the record's main fields and its details."""
+    main = {f.name for f in dataclasses.fields(FrameRecord)}
+    details = {k: v for k, v in values.items() if k not in main}
+    core = {k: v for k, v in values.items() if k in main}
+    return FrameRecord(frame=frame, wall_time=wall, stage_times=stage_times, details=details,
+                       **core)
+
+
+def write_summary(run: Run) -> None:
+    """Rewrite ``summary.json`` atomically on rank 0 (if the scene asks for it)."""
+    if run.scene.output.summary and run.comm.rank == 0:
+        frames = [dataclasses.asdict(r) for r in run.records]
+        document = summary_document(scene_dict(run.scene), run.facts, frames)
+        write_json_atomic(run.out / SUMMARY_NAME, document)
+
+
+def run_scene(scene: Scene, out: Path, comm: MPI.Comm,
+              log: Callable[[str], None] = print) -> Run:
+    """Run every frame of ``scene`` writing to ``out``; ``log`` gets one line per frame.
+
+    Raises:
+        SolverError: a body step failed after all halvings; ``summary.json`` records the
+            failure and the frames completed before it stay on disk.
+
+    """
+    run = prepare(scene, out, comm)
+    for frame in range(1, run.n_frames + 1):
+        try:
+            record = run_frame(run, frame)
+        except SolverError as exc:
+            run.facts.update(status="failed", error=str(exc), failed_frame=frame)
+            write_summary(run)
+            raise
+        run.records.append(record)
+        write_summary(run)
+        if comm.rank == 0:
+            log(record.progress_line(run.n_frames))
+    run.facts["status"] = "completed"
+    write_summary(run)
+    return run

@@ -61,11 +61,13 @@ def global_scalar(form: dolfinx.fem.Form) -> float:
     return float(form.mesh.comm.allreduce(local, op=MPI.SUM))
 
 
-def quadrature_expression(expr: object, mesh: dolfinx.mesh.Mesh,
+def quadrature_expression(expr: ufl.core.expr.Expr, mesh: dolfinx.mesh.Mesh,
                           degree: int) -> dolfinx.fem.Expression:
     """Compile a UFL expression for evaluation at the degree-``degree`` quadrature points."""
+    import numpy as np
+
     points, _ = basix.make_quadrature(mesh.basix_cell(), degree)
-    return dolfinx.fem.Expression(expr, points)
+    return dolfinx.fem.Expression(expr, np.asarray(points))
 
 
 def global_min_on_cells(expression: dolfinx.fem.Expression, mesh: dolfinx.mesh.Mesh) -> float:

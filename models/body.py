@@ -244,8 +244,7 @@ class Body:
     # --- construction ------------------------------------------------------------------------
 
     def _function(self, name: str) -> Any:
-        f = dolfinx.fem.Function(self.V, name=name)
-        return f
+        return dolfinx.fem.Function(self.V, name=name)
 
     def _build_pins(self) -> tuple[list[Any], list[tuple[PinSpec, int, Any, np.ndarray]]]:
         """One Dirichlet condition per (pin, component) on the nodes it selects.
@@ -347,6 +346,7 @@ class Body:
         report = self._advance(self.t, dynamic=False)
         for f in (self.v, self.a):
             f.x.array[:] = 0.0
+        self._accel_ready = False  # Newmark recomputes a consistent a_0 at its next step
         return report
 
     # --- stepping ------------------------------------------------------------------------------
@@ -385,7 +385,7 @@ class Body:
             solver = self._dynamic_solver  # type: ignore[assignment]
         else:
             self._static_guess(h)
-        result = solver.solve()  # type: ignore[union-attr]
+        result = solver.solve()
         if result.converged:
             if dynamic:
                 self._update_kinematics(h)
@@ -395,7 +395,7 @@ class Body:
         return result
 
     def _static_guess(self, h: float) -> None:
-        """Initial guess of a load step: ``u + h du/dt`` of the last step, pins applied.
+        """Set the initial guess of a load step: ``u + h du/dt`` of the last step, pins applied.
 
         Falls back to the current ``u`` with the new pin values when the extrapolation
         is inadmissible (``det F <= 0``); a first step uses that directly.
@@ -422,11 +422,11 @@ class Body:
         beta = NEWMARK_BETA if newmark else 1.0
         for dst, src in ((self._u_n, self.u), (self._v_n, self.v), (self._a_n, self.a)):
             dst.x.array[:] = src.x.array
-        pred = self.u.x.array + h * self.v.x.array
+        pred = np.asarray(self.u.x.array + h * self.v.x.array)
         if newmark:
             pred += h * h * (0.5 - beta) * self.a.x.array
         self._u_pred.x.array[:] = pred
-        self._inertia.value = 1.0 / (beta * h * h)
+        self._inertia.value = 1.0 / (beta * h * h)  # type: ignore[assignment]
         self.u.x.array[:] = pred
         self._apply_bcs()
         if self._static_solver.min_det_f() <= 0.0:
@@ -457,11 +457,11 @@ class Body:
             mass, rhs, bcs=zero, petsc_options_prefix=f"body_accel_{id(self)}_",
             petsc_options={"ksp_type": "preonly", "pc_type": "lu",
                            "pc_factor_mat_solver_type": self.newton.linear_solver})
-        self.a.x.array[:] = problem.solve().x.array
+        self.a.x.array[:] = problem.solve().x.array  # type: ignore[union-attr]
         self._accel_ready = True
 
     def _arrays(self) -> list[np.ndarray]:
-        """The state arrays (views) that a failed step must restore."""
+        """Return the state arrays (views) that a failed step must restore."""
         fields = (self.u, self.v, self.a, self._u_n, self._v_n, self._a_n, self._u_pred)
         return [f.x.array for f in fields] + [self._rate]
 

@@ -191,6 +191,9 @@ class FactorReport:
         numeric_time: Seconds in the numeric factorisation.
         reused_analysis: True when the symbolic analysis of an earlier call was reused.
         shift: Diagonal shift tau added before this factorisation (0 = none).
+        factor_nnz: Entries in the factors (MUMPS INFOG(29), PETSc MatGetInfo nz_used, scipy
+            nnz(L) + nnz(U)); None when unknown.
+        memory_mb: Memory of the factorisation in MB (MUMPS INFOG(22)); None when unknown.
 
     """
 
@@ -202,6 +205,8 @@ class FactorReport:
     numeric_time: float = 0.0
     reused_analysis: bool = False
     shift: float = 0.0
+    factor_nnz: int | None = None
+    memory_mb: float | None = None
 
     @property
     def indefinite(self) -> bool | None:
@@ -389,10 +394,22 @@ class _PetscBackend:
         analysis = sym1 - sym0
         reused = nsym1 == nsym0 and self.factorizations > 1
         success, negatives, why = self._factor_info(pc, failed)
+        nnz, memory = self._factor_size(pc) if success else (None, None)
         return FactorReport(success=success, reason=why if reason == "ok" else reason,
                             negative_pivots=negatives, expected_negative=self.expected_negative,
                             analysis_time=analysis, numeric_time=total - analysis,
-                            reused_analysis=reused)
+                            reused_analysis=reused, factor_nnz=nnz, memory_mb=memory)
+
+    def _factor_size(self, pc: Any) -> tuple[int | None, float | None]:
+        """(entries in the factors, MB) from MUMPS INFOG(29)/(22) or PETSc MatGetInfo."""
+        factor = pc.getFactorMatrix()
+        if self.options.backend == "mumps":
+            entries = factor.getMumpsInfog(29)  # negative: millions of entries
+            return (entries if entries >= 0 else -entries * 1_000_000), \
+                float(factor.getMumpsInfog(22))
+        if self.options.backend == "petsc":
+            return int(factor.getInfo()["nz_used"]), None
+        return None, None
 
     def _factor_info(self, pc: Any, failed: int) -> tuple[bool, int | None, str]:
         """Success flag, negative pivot count and reason from the factor matrix."""
@@ -455,7 +472,8 @@ class _ScipyBackend:
         ok = bool(np.all(np.isfinite(diag)) and np.all(diag != 0))
         return FactorReport(success=ok, reason="ok" if ok else "zero or non-finite pivot",
                             negative_pivots=self._negative_pivots(diag),
-                            expected_negative=self.expected_negative, numeric_time=elapsed)
+                            expected_negative=self.expected_negative, numeric_time=elapsed,
+                            factor_nnz=int(self.lu.L.nnz + self.lu.U.nnz))
 
     def _negative_pivots(self, diag: np.ndarray) -> int | None:
         """Sign count of diag(U) when the row and column permutations agree (symmetric)."""

@@ -60,7 +60,7 @@ def cantilever_from_arrays() -> Body:
         points, tets = serial.geometry.x, serial.geometry.dofmaps[0].astype(np.int64)
     mesh = mesh_from_arrays(comm, points, tets)
     pins = (PinSpec(kind="plane", point=(0, 0, 0), normal=(1, 0, 0)),)
-    body = Body(mesh, Material(model="stvk", E=1e5, nu=0.3),
+    body = Body(mesh, Material(model="stvk", E=1e6, nu=0.3),
                 BodyOptions(degree=2, pins=pins))
     body.solve_static()
     return body

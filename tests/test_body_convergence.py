@@ -50,5 +50,6 @@ def test_manufactured_convergence_rate(degree, sizes):
     errors = [l2_error(n, degree) for n in sizes]
     h = 1.0 / np.asarray(sizes, dtype=float)
     rate = np.polyfit(np.log(h), np.log(errors), 1)[0]
-    print(f"P{degree}: n={sizes} L2 errors={['%.3e' % e for e in errors]} fitted rate={rate:.3f}")
+    shown = ", ".join(f"{e:.3e}" for e in errors)
+    print(f"P{degree}: n={sizes} L2 errors=[{shown}] fitted rate={rate:.3f}")
     assert rate > degree + 0.8

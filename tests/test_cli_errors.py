@@ -17,7 +17,7 @@ def test_main_maps_errors_to_exit_codes(monkeypatch, capsys, error, code):
     def failing(_args):
         raise error
 
-    monkeypatch.setattr(cli, "command_run", failing)
+    monkeypatch.setitem(cli.COMMANDS, "run", failing)
     assert cli.main(["run", "any.toml"]) == code
     err = capsys.readouterr().err
     if isinstance(error, InputError | SolverError):
@@ -50,7 +50,7 @@ def fake_run(args):
     comm.barrier()  # rank 0 would wait here forever for rank 1
     return 0
 
-cli.command_run = fake_run
+cli.COMMANDS["run"] = fake_run
 sys.exit(cli.main(["run", "x.toml"]))
 """
 

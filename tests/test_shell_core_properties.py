@@ -183,3 +183,45 @@ def test_input_errors() -> None:
     bad[top.faces[3, 2]] = 0.5 * (bad[top.faces[3, 0]] + bad[top.faces[3, 1]])
     with pytest.raises(InputError, match="face 3"):
         RestState.from_positions(top, bad)
+
+
+@pytest.mark.parametrize("name", ["area", "bending"])
+def test_reduced_projection_equals_full_clamp(name: str) -> None:
+    """The translation-reduced clamp equals V max(w, 0) V^T of the full block (numpy eigh)."""
+    from models.shell.bending import hinge_bending
+
+    p, top, rest = random_shell("sphere")
+    x = perturb(p, 0.05, 4)
+    if name == "area":
+        blocks = area_membrane(x, top.faces, rest.rest_areas).blocks
+    else:
+        blocks = hinge_bending(x, top.hinges, rest.rest_angles, rest.hinge_weights).blocks
+    w, v = np.linalg.eigh(blocks)
+    reference = np.einsum("tij,tj,tkj->tik", v, np.maximum(w, 0.0), v)
+    reduced, full = blocks.copy(), blocks.copy()
+    project_psd_blocks(reduced)
+    project_psd_blocks(full, translation_invariant=False)
+    scale = np.abs(blocks).max()
+    assert (w[:, 0] < -1e-8 * scale).mean() > 0.2  # many blocks really are indefinite
+    np.testing.assert_allclose(reduced, reference, atol=1e-12 * scale)
+    np.testing.assert_allclose(full, reference, atol=1e-12 * scale)
+
+
+def test_collapsed_edges_and_faces_stay_finite() -> None:
+    """Coincident vertices / a flattened face give finite values, gradients and Hessians."""
+    p, top, rest = random_shell("plate")
+    x = p.copy()
+    i, j = top.edges[5]
+    x[j] = x[i]  # edge 5 collapsed to a point
+    far = np.flatnonzero(~np.isin(top.faces, [i, j]).any(axis=1))[0]
+    f = top.faces[far]
+    x[f[2]] = 0.5 * (x[f[0]] + x[f[1]])  # face `far` flattened onto a line
+    for term, st, rl in TERMS.values():
+        for mode in ("exact", "gauss_newton", "projected"):
+            ev = term(x, st(top), rl(rest), hessian_mode=mode)
+            assert np.isfinite(ev.value) and np.all(np.isfinite(ev.grad))
+            assert np.all(np.isfinite(ev.blocks))
+    edge = edge_membrane(x, top.edges, rest.rest_lengths).element_values[5]
+    assert edge == pytest.approx(rest.rest_lengths[5], rel=1e-9)  # (0 - l0)^2 / l0
+    area = area_membrane(x, top.faces, rest.rest_areas).element_values[far]
+    assert area == pytest.approx(rest.rest_areas[far], rel=1e-9)  # (0 - A0)^2 / A0

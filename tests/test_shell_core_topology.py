@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from meshes.shells import (
     cylinder_strip,
@@ -115,3 +117,30 @@ def test_error_orientation_names_faces() -> None:
 def test_error_bad_faces(faces: list, n: int, match: str) -> None:
     with pytest.raises(InputError, match=match):
         ShellTopology.from_faces(np.array(faces), n)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), keep=st.floats(0.3, 1.0), flip=st.booleans())
+def test_topology_invariants_random_submeshes(seed: int, keep: float, flip: bool) -> None:
+    """Random face subsets of an irregular plate (optionally all faces reversed, vertices
+    relabelled): incidence counts, edge-face consistency and hinge convention always hold."""
+    rng = np.random.default_rng(seed)
+    p, f = irregular_plate(64, seed % 7)
+    f = f[rng.random(len(f)) < keep]
+    if f.shape[0] == 0:
+        return
+    perm = rng.permutation(len(p))
+    f = perm[f][:, ::-1] if flip else perm[f]
+    top = ShellTopology.from_faces(f, len(p))
+    n_two = int((top.edge_faces[:, 1] >= 0).sum())
+    assert 3 * top.n_faces == 2 * n_two + top.boundary_edges.size
+    assert top.hinges.shape[0] == n_two
+    np.testing.assert_array_equal(top.hinges[:, :2], top.edges[top.hinge_edge])
+    f0 = top.faces[top.edge_faces[top.hinge_edge, 0]]
+    f1 = top.faces[top.edge_faces[top.hinge_edge, 1]]
+    i, j, k, l_ = top.hinges.T
+    assert np.all(np.sort(f0, axis=1) == np.sort(np.column_stack([i, j, k]), axis=1))
+    assert np.all(np.sort(f1, axis=1) == np.sort(np.column_stack([i, j, l_]), axis=1))
+    # face0 traverses i -> j: the successor of i in face0 is j
+    pos = np.argmax(f0 == i[:, None], axis=1)
+    assert np.all(f0[np.arange(len(pos)), (pos + 1) % 3] == j)

@@ -1,4 +1,7 @@
-"""Command-line interface: ``wrinkles run SCENE.toml [--out DIR] [--frames N] [--set k=v ...]``.
+"""Command-line interface of the ``wrinkles`` console script.
+
+``wrinkles run SCENE.toml [--out DIR] [--frames N] [--set key=value ...]`` runs a scene;
+``wrinkles check SCENE.toml [--set key=value ...]`` validates it and prints it resolved (JSON).
 
 Exit codes: 0 ok; 1 bad input (``InputError``: one line ``error: <message>`` on stderr, no
 traceback; also bad command-line usage); 2 solver failure (``SolverError``: the frames done so
@@ -14,6 +17,7 @@ agreement the failing rank prints its message and calls ``MPI_Abort`` with the e
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -41,15 +45,22 @@ def build_parser() -> ArgumentParser:
     parser = ArgumentParser(prog="wrinkles", description="Embedded thin shells for wrinkle "
                             "simulation on FEniCSx: run a scene file.")
     commands = parser.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
-    run = commands.add_parser("run", help="run a scene file (TOML)")
-    run.add_argument("scene", type=Path, help="scene file, e.g. scenes/default.toml")
+    run = add_scene_arguments(commands.add_parser("run", help="run a scene file (TOML)"))
     run.add_argument("--out", type=Path, default=None,
                      help="output directory (default: out/<scene name>)")
     run.add_argument("--frames", type=int, default=None, help="number of frames to run "
                      "(replaces time.frames / time.end_time)")
-    run.add_argument("--set", dest="overrides", action="append", default=[],
-                     metavar="KEY=VALUE", help="override a scene key, value as a TOML "
-                     "literal (repeatable), e.g. --set material.E=2e4")
+    add_scene_arguments(commands.add_parser(
+        "check", help="validate a scene file and print the resolved scene as JSON"))
+    return parser
+
+
+def add_scene_arguments(parser: ArgumentParser) -> ArgumentParser:
+    """Add the scene file and the ``--set`` overrides to a sub-command; return it."""
+    parser.add_argument("scene", type=Path, help="scene file, e.g. scenes/default.toml")
+    parser.add_argument("--set", dest="overrides", action="append", default=[],
+                        metavar="KEY=VALUE", help="override a scene key, value as a TOML "
+                        "literal (repeatable), e.g. --set material.E=2e4")
     return parser
 
 
@@ -70,6 +81,21 @@ def command_run(args: argparse.Namespace) -> int:
     out = args.out if args.out is not None else Path("out") / args.scene.stem
     run_scene(scene, out, MPI.COMM_WORLD, log=lambda line: print(line, flush=True))
     return 0
+
+
+def command_check(args: argparse.Namespace) -> int:
+    """Load and validate the scene (no mesh is built) and print it resolved, as JSON."""
+    from models.backend import MPI
+    from wrinkles.scene import load_scene, scene_dict
+
+    scene = load_scene(args.scene, args.overrides)
+    if MPI.COMM_WORLD.rank == 0:
+        print(json.dumps(scene_dict(scene), indent=2), flush=True)
+    return 0
+
+
+COMMANDS = {"run": command_run, "check": command_check}
+"""Sub-command name -> its function (``args -> exit code``)."""
 
 
 def report(exc: BaseException) -> int:
@@ -131,7 +157,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return report(exc)
     try:
         _init_agreement()
-        return command_run(args)
+        return COMMANDS[args.command](args)
     except Exception as exc:  # noqa: BLE001  (mapped to exit codes, see module doc)
         return fail_collectively(exc)
 

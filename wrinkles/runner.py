@@ -4,7 +4,11 @@ Algorithm 1 of the draft (Rémillard & Kry 2013 embedded thin shells) advances t
 and then the embedded shell once per frame. Here one frame runs the *stages* in order, each a
 callable ``stage(frame) -> dict`` that advances its part of the model and returns the numbers
 it wants in the frame record. The body stage is the only one today; the shell stage plugs in
-after it (``stages.append(shell_stage)``) without touching the loop.
+after it without touching the loop::
+
+    run = prepare(scene, out, comm)          # mesh, body, body stage, output files
+    run.stages.append(("shell", shell_stage))  # e.g. target y = B (X_q + u_q), minimise W
+    run_frames(run, log)
 
 Parallel runs: rank 0 builds or reads the mesh (gmsh and meshio are serial) and dolfinx
 distributes it; an ``InputError`` on rank 0 is broadcast so every rank raises the same error
@@ -250,16 +254,14 @@ def write_summary(run: Run) -> None:
         write_json_atomic(run.out / SUMMARY_NAME, document)
 
 
-def run_scene(scene: Scene, out: Path, comm: MPI.Comm,
-              log: Callable[[str], None] = print) -> Run:
-    """Run every frame of ``scene`` writing to ``out``; ``log`` gets one line per frame.
+def run_frames(run: Run, log: Callable[[str], None] = print) -> Run:
+    """Run every frame of a prepared run; rank 0 passes one progress line per frame to ``log``.
 
     Raises:
-        SolverError: a body step failed after all halvings; ``summary.json`` records the
-            failure and the frames completed before it stay on disk.
+        SolverError: a step failed after all halvings; ``summary.json`` records the failure
+            and the frames completed before it stay on disk.
 
     """
-    run = prepare(scene, out, comm)
     for frame in range(1, run.n_frames + 1):
         try:
             record = run_frame(run, frame)
@@ -269,8 +271,14 @@ def run_scene(scene: Scene, out: Path, comm: MPI.Comm,
             raise
         run.records.append(record)
         write_summary(run)
-        if comm.rank == 0:
+        if run.comm.rank == 0:
             log(record.progress_line(run.n_frames))
     run.facts["status"] = "completed"
     write_summary(run)
     return run
+
+
+def run_scene(scene: Scene, out: Path, comm: MPI.Comm,
+              log: Callable[[str], None] = print) -> Run:
+    """Prepare ``scene`` (mesh, body, output in ``out``) and run all its frames."""
+    return run_frames(prepare(scene, out, comm), log)

@@ -15,7 +15,12 @@ CSR layout: the vertex-block pattern is sorted by (row, column). Vertex row ``r`
 ``q`` (``bptr[r] <= q < bptr[r+1]``) starts at ``off_q = 9 bptr[r] + 3 (q - bptr[r])`` and
 its entry ``(a, b)`` lives at ``csr.data[off_q + a L_r + b]``. The scatter map of a stencil
 array stores ``off_q`` per local vertex pair (``(m, s, s)`` int64, 9x smaller than a per-entry
-map); the kernel adds ``a L_r + b`` using ``row_len[r] = L_r``.
+map, :meth:`StencilPattern.entry_map` expands it); the kernel adds ``a L_r + b`` using
+``row_len[r] = L_r``. Indices are int32 while ``nnz < 2^31`` (scipy keeps int32 arrays as
+given), else int64.
+
+Hessian modes (:data:`HessianMode`) and the per-block PSD projection
+(:func:`project_psd_blocks`) shared by all terms also live here.
 """
 
 from __future__ import annotations
@@ -49,7 +54,7 @@ def check_order(order: int) -> None:
         raise InputError(f"order: expected 0 (value), 1 (+gradient) or 2 (+Hessian), got {order}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TermEval:
     """Result of one energy term evaluated over its stencils.
 
@@ -67,7 +72,7 @@ class TermEval:
     element_values: np.ndarray | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ScatterMap:
     """Where the local Hessian blocks of one stencil array go in ``csr.data``.
 
@@ -82,7 +87,7 @@ class ScatterMap:
     base: np.ndarray
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class StencilPattern:
     """Fixed CSR pattern (3x3 vertex blocks) of the global shell Hessian.
 
@@ -161,6 +166,20 @@ class StencilPattern:
         mat = sp.csr_matrix(self.shape, dtype=np.float64)
         mat.data, mat.indices, mat.indptr = data, self.indices, self.indptr
         return mat
+
+    def entry_map(self, which: int) -> np.ndarray:
+        """Per-entry scatter map (m, 3 s, 3 s) int64 of stencil array ``which``.
+
+        ``csr.data[entry_map[t, 3 a + i, 3 b + j]]`` is the global entry of local entry
+        ``(3 a + i, 3 b + j)`` of stencil ``t``. Expanded from the compact per-block
+        :attr:`ScatterMap.base` (9x the memory; :func:`assemble` does not need it).
+        """
+        smap = self.maps[which]
+        m, s = smap.stencils.shape
+        k = np.arange(3)
+        rows = self.row_len[smap.stencils][:, :, None, None, None] * k[:, None, None]
+        full = smap.base[:, :, None, :, None] + rows + k  # [t, a, i, b, j]
+        return full.reshape(m, 3 * s, 3 * s)
 
     def extra_data(self, which: int, matrix: sp.spmatrix | sp.sparray,
                    scale: float = 1.0) -> np.ndarray:
@@ -284,17 +303,77 @@ def assemble(pattern: StencilPattern,
     return pattern.to_csr(data)
 
 
-@numba.njit(cache=True, fastmath=False)
-def project_psd_blocks(blocks: np.ndarray) -> None:  # pragma: no cover - numba
-    """In place: replace each symmetric block by its projection onto the PSD cone.
+def translation_complement(s: int) -> np.ndarray:
+    """Orthonormal basis ``Q`` (3 s, 3 (s - 1)) of the dofs orthogonal to rigid translations.
 
-    ``K = V diag(w) V^T -> V diag(max(w, 0)) V^T`` (per-element eigenvalue clamp, as in
-    Teran et al. 2005 / the "projected Newton" of the IPC literature), via LAPACK ``syevd``.
+    Helmert basis of ``R^s`` orthogonal to ``(1, ..., 1)``, Kronecker I3: ``Q^T Q = I`` and
+    ``Q^T T = 0`` for the translation basis ``T = 1_s kron I3``.
     """
+    helmert = np.zeros((s, s - 1))
+    for k in range(1, s):
+        helmert[:k, k - 1] = 1.0 / np.sqrt(k * (k + 1))
+        helmert[k, k - 1] = -k / np.sqrt(k * (k + 1))
+    return np.kron(helmert, np.eye(3))
+
+
+@numba.njit(cache=True, fastmath=False)
+def _project_psd(blocks: np.ndarray, q: np.ndarray) -> None:  # pragma: no cover - numba
+    """In place ``K <- Q P_+(Q^T K Q) Q^T`` per block (``Q = I`` gives the plain clamp)."""
+    n, r = q.shape
+    kq = np.empty((n, r))
+    red = np.empty((r, r))
+    qv = np.empty((n, r))
     for t in range(blocks.shape[0]):
-        k = 0.5 * (blocks[t] + blocks[t].T)
-        w, v = np.linalg.eigh(k)
+        kb = blocks[t]
+        for i in range(n):  # kq = K Q (explicit loops: no BLAS call overhead at this size)
+            for j in range(r):
+                acc = 0.0
+                for m in range(n):
+                    acc += kb[i, m] * q[m, j]
+                kq[i, j] = acc
+        for i in range(r):  # red = Q^T K Q, symmetrised
+            for j in range(i, r):
+                acc = 0.0
+                for m in range(n):
+                    acc += q[m, i] * kq[m, j] + q[m, j] * kq[m, i]
+                red[i, j] = 0.5 * acc
+                red[j, i] = 0.5 * acc
+        w, v = np.linalg.eigh(red)
         if w[0] >= 0.0:
             continue
-        w = np.maximum(w, 0.0)
-        blocks[t] = (v * w) @ np.ascontiguousarray(v.T)
+        for i in range(n):  # qv = Q v
+            for j in range(r):
+                acc = 0.0
+                for m in range(r):
+                    acc += q[i, m] * v[m, j]
+                qv[i, j] = acc
+        for i in range(n):  # K = sum_{w_k > 0} w_k qv_k qv_k^T
+            for j in range(i, n):
+                acc = 0.0
+                for m in range(r):
+                    if w[m] > 0.0:
+                        acc += w[m] * qv[i, m] * qv[j, m]
+                kb[i, j] = acc
+                kb[j, i] = acc
+
+
+def project_psd_blocks(blocks: np.ndarray, translation_invariant: bool = True) -> None:
+    """In place: replace each symmetric local Hessian by its projection onto the PSD cone.
+
+    ``K = V diag(w) V^T -> V diag(max(w, 0)) V^T`` (per-element eigenvalue clamp, Teran et al.
+    2005; the "projected Newton" of the IPC literature), LAPACK ``syevd`` via numba. Every
+    shell term is invariant under rigid translations, so ``K T = 0`` for ``T = 1_s kron I3``
+    and the clamp can be done on the reduced ``Q^T K Q`` (:func:`translation_complement`,
+    size ``3 s - 3``): the same result, about 2x faster for 12x12 hinge blocks.
+
+    Args:
+        blocks: (m, 3 s, 3 s) float64 C-contiguous symmetric blocks, modified in place.
+        translation_invariant: Use the reduced clamp (only valid when ``K T = 0``).
+
+    """
+    size = blocks.shape[1]
+    if translation_invariant and size % 3 == 0 and size >= 6:
+        q = translation_complement(size // 3)
+    else:
+        q = np.eye(size)
+    _project_psd(blocks, q)

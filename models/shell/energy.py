@@ -80,7 +80,7 @@ class ShellParams:
                              f"got {self.penalty_hessian!r}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ShellEval:
     """Result of :meth:`ShellEnergy.evaluate`.
 

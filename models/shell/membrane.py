@@ -32,6 +32,8 @@ positions (``d2A`` is indefinite whatever the sign of ``A - A0``), so "gauss_new
 
 Both terms are pure functions returning a :class:`models.shell.assembly.TermEval`, evaluated
 by fused numba kernels (value + gradient + local Hessian in one pass over the stencils).
+A collapsed current edge (``l -> 0``) or face (``A -> 0``) is not differentiable; ``l`` and
+``|n|`` are floored at ``1e-12`` times their rest values so the output stays finite.
 """
 
 from __future__ import annotations
@@ -48,7 +50,9 @@ from models.shell.assembly import (
 )
 
 _MODE_CODE = {"exact": 0, "gauss_newton": 1, "projected": 2}
-_TINY = 1e-300
+_FLOOR = 1e-12
+"""Current length / doubled area below ``_FLOOR`` times the rest value is clamped to it, so a
+collapsed edge or face yields large but finite derivatives (never inf/NaN)."""
 
 
 @numba.njit(cache=True, fastmath=False)
@@ -60,7 +64,7 @@ def _edge_kernel(x: np.ndarray, edges: np.ndarray, rest_len: np.ndarray, stiffne
         i, j = edges[e, 0], edges[e, 1]
         l0 = rest_len[e]
         d0, d1, d2 = x[j, 0] - x[i, 0], x[j, 1] - x[i, 1], x[j, 2] - x[i, 2]
-        ln = max(np.sqrt(d0 * d0 + d1 * d1 + d2 * d2), _TINY)
+        ln = max(np.sqrt(d0 * d0 + d1 * d1 + d2 * d2), _FLOOR * l0)
         r = ln - l0
         vals[e] = stiffness * r * r / l0
         if order < 1:
@@ -88,7 +92,7 @@ def _edge_kernel(x: np.ndarray, edges: np.ndarray, rest_len: np.ndarray, stiffne
 def _outputs(n_vertices: int, m: int, s: int, order: int) -> tuple[np.ndarray, ...]:
     """Allocate per-stencil values, flat gradient and local blocks (empty when not needed)."""
     grad = np.zeros(3 * n_vertices if order >= 1 else 0)
-    blocks = np.zeros((m, 3 * s, 3 * s) if order >= 2 else (0, 3 * s, 3 * s))
+    blocks = np.empty((m, 3 * s, 3 * s) if order >= 2 else (0, 3 * s, 3 * s))  # all written
     return np.empty(m), grad, blocks
 
 
@@ -152,7 +156,7 @@ def _area_kernel(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, stiffn
         n0 = d[1, 1] * d[2, 2] - d[1, 2] * d[2, 1]
         n1 = d[1, 2] * d[2, 0] - d[1, 0] * d[2, 2]
         n2 = d[1, 0] * d[2, 1] - d[1, 1] * d[2, 0]
-        nn = max(np.sqrt(n0 * n0 + n1 * n1 + n2 * n2), _TINY)
+        nn = max(np.sqrt(n0 * n0 + n1 * n1 + n2 * n2), 2.0 * _FLOOR * rest_area[f])
         h0, h1, h2 = n0 / nn, n1 / nn, n2 / nn
         area, a0 = 0.5 * nn, rest_area[f]
         r = area - a0

@@ -29,7 +29,7 @@ from models.errors import InputError
 from models.shell.assembly import TermEval, check_order
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class PenaltyOperator:
     """The cluster matrix with its transpose stored once for fast products.
 

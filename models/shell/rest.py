@@ -29,7 +29,7 @@ DEGENERATE_AREA_RATIO: float = 1e-14
 """A rest face with area <= this times its longest edge squared is rejected as degenerate."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class RestState:
     """Rest quantities of every stencil (computed once from rest positions).
 

@@ -30,7 +30,7 @@ import numpy as np
 from models.errors import InputError
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ShellTopology:
     """Immutable connectivity of a consistently oriented manifold triangle mesh.
 

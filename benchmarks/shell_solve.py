@@ -1,0 +1,299 @@
+"""Sparse direct solve benchmark for the shell Newton system, per backend and size.
+
+For regular (icosphere) and irregular (jittered Delaunay plate) shells of about 10k, 40k,
+160k and 640k vertices, a realistic shell Hessian is assembled by ``ShellEnergy`` at a
+perturbed state (membrane + bending, Gauss-Newton local Hessians so the matrix is SPD, plus
+the cluster penalty), and each backend is timed (one core, OMP_NUM_THREADS=1):
+
+* ``first``: first factorisation = symbolic analysis + numeric (split by PETSc log events);
+* ``refact``: refactorisation with new values (the Hessian at a second state), analysis reused;
+* ``solve``: forward/backward substitution;
+* ``newton_it``: one Newton iteration = evaluate (order 2) + refact + solve + one energy
+  value (the accepted full step of the line search);
+* factor entries / MUMPS memory, and the process peak RSS during that backend (VmHWM, reset
+  through /proc/self/clear_refs before each backend).
+
+Three systems (``--systems``):
+
+* ``local``: membrane + bending + ``k_P I`` (a diagonal penalty, c = n clusters of one
+  vertex): the sparsest shell pattern, 1-ring + hinge-opposite vertex blocks;
+* ``assembled``: membrane + bending + the cluster penalty ``2 k_P (H^T H) (x) I_3`` merged
+  into the pattern (fills in: every pair of vertices sharing a cluster), only up to
+  ``--assembled-max`` vertices;
+* ``augmented``: membrane + bending with the penalty as the low-rank factor G, solved as
+  ``[[A, G^T], [G, -I]]`` (LDL^T / LU only).
+
+Clusters: ``n / --cluster-ratio`` centres on a voxel grid, Gaussian weights of the Euclidean
+distance (sigma = 2 r / pi, cut at 2 sigma, rows normalised), a cheap stand-in for
+``models.embedding.clusters`` (whose edge-path FPS takes minutes beyond 40k vertices) with
+the same sparsity (about 75 vertices per cluster).
+
+Usage::
+
+    python benchmarks/shell_solve.py --quick                 # 10k only (while developing)
+    python benchmarks/shell_solve.py --sizes 10k 40k 160k 640k
+
+Prints a table and writes benchmarks/results/shell_solve.json. Reference (CHOLMOD, one
+core, this machine): 0.35 s (10k vertices), 2.3 s (40k), 15-18 s (160k).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+import scipy.sparse as sp  # noqa: E402
+from scipy.spatial import cKDTree  # noqa: E402
+
+from meshes.shells import icosphere, irregular_plate, perturb  # noqa: E402
+from models.backend import PETSc  # noqa: E402
+from models.shell.energy import ShellEnergy, ShellParams  # noqa: E402
+from models.shell.rest import RestState  # noqa: E402
+from models.shell.topology import ShellTopology  # noqa: E402
+from solvers.linear import (  # noqa: E402
+    AugmentedPenaltySolver,
+    LinearSolverOptions,
+    SparseDirectSolver,
+    true_residual,
+)
+
+SIZES = {"10k": (5, 10_000), "40k": (6, 40_000), "160k": (7, 160_000), "640k": (8, 640_000)}
+RESULTS = Path(__file__).resolve().parent / "results" / "shell_solve.json"
+BACKENDS: dict[str, LinearSolverOptions] = {
+    "mumps-chol-aij": LinearSolverOptions("mumps", "cholesky", "aij"),
+    "mumps-chol-sbaij": LinearSolverOptions("mumps", "cholesky", "sbaij"),
+    "mumps-ldlt-aij": LinearSolverOptions("mumps", "ldlt", "aij"),
+    "mumps-ldlt-sbaij": LinearSolverOptions("mumps", "ldlt", "sbaij"),
+    "mumps-chol-amd": LinearSolverOptions("mumps", "cholesky", "aij", ordering="amd"),
+    "mumps-chol-blr": LinearSolverOptions("mumps", "cholesky", "aij", mumps_blr=True,
+                                          mumps_blr_tolerance=1e-10),
+    "petsc-chol-nd": LinearSolverOptions("petsc", "cholesky", "aij"),
+    "superlu_dist-lu": LinearSolverOptions("superlu_dist", "lu", "aij"),
+    "scipy-splu-sym": LinearSolverOptions("scipy", "cholesky", "aij"),
+}
+SLOW = ("petsc-chol-nd", "superlu_dist-lu", "scipy-splu-sym")
+
+
+def peak_rss_mib() -> float:
+    """Peak resident set size since the last :func:`reset_peak_rss` (MiB, VmHWM)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def reset_peak_rss() -> None:
+    """Reset VmHWM to the current RSS (Linux: write 5 to /proc/self/clear_refs)."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+
+
+def make_mesh(kind: str, size: str) -> tuple[np.ndarray, np.ndarray]:
+    """Regular icosphere of ``SIZES[size][0]`` levels or irregular plate of ~n vertices."""
+    level, n = SIZES[size]
+    return icosphere(level) if kind == "regular" else irregular_plate(n, seed=1)
+
+
+def cluster_matrix(points: np.ndarray, ratio: int) -> sp.csr_matrix:
+    """Gaussian weights (Euclidean, cut at 2 sigma, rows sum to 1) of ~n/ratio voxel centres."""
+    n = len(points)
+    extent = np.ptp(points, axis=0)
+    dims = int(np.count_nonzero(extent > 1e-12 * extent.max()))
+    volume = np.prod(extent[extent > 1e-12 * extent.max()])
+    spacing = (volume * ratio / n) ** (1.0 / dims) * (0.6 if dims == 3 else 1.0)
+    cells = np.floor((points - points.min(0)) / spacing).astype(np.int64)
+    _, centres = np.unique(cells, axis=0, return_index=True)
+    sigma = 2.0 * spacing / np.pi
+    tree = cKDTree(points)
+    rows, cols, vals = [], [], []
+    for c, members in enumerate(tree.query_ball_point(points[centres], 2.0 * sigma)):
+        d2 = np.sum((points[members] - points[centres[c]]) ** 2, axis=1)
+        w = np.exp(-d2 / (2.0 * sigma**2))
+        rows.append(np.full(len(members), c))
+        cols.append(members)
+        vals.append(w / w.sum())
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                         shape=(len(centres), n))
+
+
+def build_energy(points: np.ndarray, faces: np.ndarray, system: str,
+                 h: sp.csr_matrix) -> ShellEnergy:
+    """ShellEnergy (k_L 1e3, k_B 1e-1, k_P 1e3, Gauss-Newton) for one of the three systems."""
+    topo = ShellTopology.from_faces(faces, len(points))
+    rest = RestState.from_positions(topo, points)
+    penalty = "low_rank" if system == "augmented" else "assembled"
+    params = ShellParams(k_L=1e3, k_B=1e-1, k_P=1e3, hessian_mode="gauss_newton",
+                         penalty_hessian=penalty)
+    cluster = sp.identity(len(points), format="csr") if system == "local" else h
+    return ShellEnergy(topo, rest, params, H=cluster)
+
+
+def timed(fn):  # noqa: ANN001, ANN201
+    """(result, seconds) of ``fn()``."""
+    t0 = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - t0
+
+
+def bench_backend(name: str, opts: LinearSolverOptions, energy: ShellEnergy,
+                  states: list[np.ndarray], evals: list, t_eval: float, t_value: float,
+                  system: str) -> dict:
+    """Time first factorisation, refactorisation and solve of one backend; check residuals."""
+    reset_peak_rss()
+    a0, a1 = evals[0].hess, evals[1].hess
+    g = evals[0].penalty_factor
+    rhs = -evals[1].grad
+    if system == "augmented":
+        solver = AugmentedPenaltySolver(a0, g, opts)
+        first = solver.factorize(a0, g)
+        refact = solver.factorize(a1, g)
+        full = (a1 + g.T @ g).tocsr()
+    else:
+        solver = SparseDirectSolver(a0, opts)
+        first = solver.factorize(a0)
+        refact = solver.factorize(a1)
+        full = a1
+    dx, t_solve = timed(lambda: solver.solve(rhs))
+    for _ in range(2):
+        t_solve = min(t_solve, timed(lambda: solver.solve(rhs))[1])
+    residual = true_residual(full, dx, rhs)
+    t_first = first.analysis_time + first.numeric_time
+    return {"backend": name, "ok": bool(first.success and refact.success),
+            "analysis": first.analysis_time, "first_numeric": first.numeric_time,
+            "first": t_first, "refact": refact.numeric_time + refact.analysis_time,
+            "reused_analysis": refact.reused_analysis, "solve": t_solve,
+            "newton_it": t_eval + refact.numeric_time + refact.analysis_time + t_solve + t_value,
+            "residual": residual, "negative_pivots": refact.negative_pivots,
+            "factor_nnz": refact.factor_nnz, "mumps_mb": refact.memory_mb,
+            "peak_rss_mib": peak_rss_mib()}
+
+
+def evaluate_states(energy: ShellEnergy, points: np.ndarray, h_scale: float
+                    ) -> tuple[list[np.ndarray], list, float, float]:
+    """Two perturbed states (10 % / 12 % of the mean edge), their order-2 evaluations, timings."""
+    states = [perturb(points, 0.10 * h_scale, seed=1), perturb(points, 0.12 * h_scale, seed=2)]
+    energy.set_target(points)
+    evals = [energy.evaluate(x, order=2) for x in states]
+    _, t_eval = timed(lambda: energy.evaluate(states[1], order=2))
+    _, t_value = timed(lambda: energy.value(states[1]))
+    return states, evals, t_eval, t_value
+
+
+def mean_edge(points: np.ndarray, faces: np.ndarray) -> float:
+    """Mean edge length of the mesh (over face edges, with repeats)."""
+    e = points[faces[:, [1, 2, 0]]] - points[faces]
+    return float(np.mean(np.linalg.norm(e, axis=2)))
+
+
+def backends_for(system: str, names: list[str], size: str, slow_max: str) -> list[str]:
+    """Backends that apply to ``system`` (no Cholesky on the indefinite augmented matrix)."""
+    out = []
+    for name in names:
+        opts = BACKENDS[name]
+        if system == "augmented" and opts.symmetric == "cholesky":
+            continue
+        if name in SLOW and SIZES[size][1] > SIZES[slow_max][1]:
+            continue
+        out.append(name)
+    if system == "augmented":
+        out += [n for n in ("mumps-lu-aug",) if n not in out]
+    return out
+
+
+def run_case(kind: str, size: str, system: str, args: argparse.Namespace) -> list[dict]:
+    """All backends on one mesh / system; returns the result rows."""
+    points, faces = make_mesh(kind, size)
+    h = cluster_matrix(points, args.cluster_ratio)
+    energy, t_build = timed(lambda: build_energy(points, faces, system, h))
+    states, evals, t_eval, t_value = evaluate_states(energy, points, mean_edge(points, faces))
+    a = evals[0].hess
+    g = evals[0].penalty_factor
+    info = {"mesh": kind, "size": size, "vertices": len(points), "system": system,
+            "dofs": a.shape[0], "nnz": int(a.nnz + (2 * g.nnz + g.shape[0] if g is not None
+                                                    else 0)),
+            "clusters": int(h.shape[0]), "cluster_support": float(h.getnnz(axis=1).mean()),
+            "t_build": t_build, "t_eval": t_eval, "t_value": t_value}
+    rows = []
+    for name in backends_for(system, args.backends, size, args.slow_max):
+        opts = BACKENDS.get(name) or LinearSolverOptions("mumps", "lu", "aij")
+        row = {**info, **bench_backend(name, opts, energy, states, evals, t_eval, t_value,
+                                        system)}
+        print_row(row)
+        rows.append(row)
+    return rows
+
+
+HEADER = (f"{'mesh':9}{'size':>5}{'system':>10}{'dofs':>9}{'nnz':>11} {'backend':18}"
+          f"{'analysis':>9}{'first':>8}{'refact':>8}{'solve':>7}{'newton':>8}{'resid':>9}"
+          f"{'fact nnz':>11}{'MB':>7}{'RSS':>7}")
+
+
+def print_row(r: dict) -> None:
+    """One table line (seconds, MB)."""
+    mb = f"{r['mumps_mb']:.0f}" if r["mumps_mb"] is not None else "-"
+    nnz = f"{r['factor_nnz']:.3g}" if r["factor_nnz"] is not None else "-"
+    print(f"{r['mesh']:9}{r['size']:>5}{r['system']:>10}{r['dofs']:>9}{r['nnz']:>11} "
+          f"{r['backend']:18}{r['analysis']:9.3f}{r['first']:8.3f}{r['refact']:8.3f}"
+          f"{r['solve']:7.3f}{r['newton_it']:8.3f}{r['residual']:9.1e}{nnz:>11}{mb:>7}"
+          f"{r['peak_rss_mib']:7.0f}" + ("" if r["ok"] and r["reused_analysis"]
+                                         or r["backend"].startswith("scipy") else "  !"),
+          flush=True)
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """Command line: sizes, meshes, systems, backends."""
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sizes", nargs="+", default=list(SIZES), choices=list(SIZES))
+    p.add_argument("--quick", action="store_true", help="10k only")
+    p.add_argument("--meshes", nargs="+", default=["regular", "irregular"],
+                   choices=["regular", "irregular"])
+    p.add_argument("--systems", nargs="+", default=["local", "assembled", "augmented"],
+                   choices=["local", "assembled", "augmented"])
+    p.add_argument("--backends", nargs="+", default=list(BACKENDS),
+                   choices=[*BACKENDS, "mumps-lu-aug"])
+    p.add_argument("--assembled-max", default="40k", choices=list(SIZES),
+                   help="largest size for the assembled (filled-in) penalty system")
+    p.add_argument("--slow-max", default="160k", choices=list(SIZES),
+                   help="largest size for petsc / superlu_dist / scipy")
+    p.add_argument("--cluster-ratio", type=int, default=25, help="vertices per cluster centre")
+    p.add_argument("--out", type=Path, default=RESULTS)
+    args = p.parse_args(argv)
+    if args.quick:
+        args.sizes = ["10k"]
+    return args
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Run every (size, mesh, system) case, print the table, write the JSON."""
+    args = parse_args(argv)
+    PETSc.Sys.pushErrorHandler("python")
+    print(HEADER)
+    rows: list[dict] = []
+    for size in args.sizes:
+        for kind in args.meshes:
+            for system in args.systems:
+                if system == "assembled" and SIZES[size][1] > SIZES[args.assembled_max][1]:
+                    continue
+                rows += run_case(kind, size, system, args)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"python": platform.python_version(), "petsc": PETSc.Sys.getVersion(),
+            "machine": platform.machine(), "omp_threads": os.environ.get("OMP_NUM_THREADS"),
+            "reference_cholmod_s": {"10k": 0.35, "40k": 2.3, "160k": "15-18"},
+            "units": "seconds; MB = MUMPS INFOG(22); RSS = peak MiB during the backend"}
+    args.out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

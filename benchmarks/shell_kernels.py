@@ -5,8 +5,8 @@ For regular (icosphere) and irregular (jittered Delaunay plate) shells of about 
 
 * each term (edge membrane W_L, area membrane W_A, bending W_B, penalty W_P) at order 0
   (value), 1 (+ gradient) and 2 (+ local Hessian blocks), in microseconds per vertex;
-* the generic assembly of all local blocks into the fixed CSR pattern, in microseconds per
-  non-zero 3x3 block;
+* the generic assembly of the edge and hinge blocks (the default energy: k_A = 0) into the
+  fixed CSR pattern, in microseconds per non-zero 3x3 block;
 * the complete ``ShellEnergy.evaluate(x, order=2)`` (membrane + bending + penalty, penalty
   Hessian "low_rank" and, up to ``--assembled-max`` vertices, "assembled");
 * topology / pattern build times and the process peak RSS after each mesh.
@@ -112,12 +112,11 @@ def time_terms(x: np.ndarray, top: ShellTopology, rest: RestState, op: PenaltyOp
 
 def time_assembly(x: np.ndarray, top: ShellTopology, rest: RestState,
                   repeat: int) -> dict[str, float]:
-    """Pattern build and assembly (edges + faces + hinges) times and the block count."""
+    """Pattern build and assembly times (edges + hinges, as the default energy) and blocks."""
     t0 = time.perf_counter()
-    pattern = StencilPattern.from_stencils([top.edges, top.faces, top.hinges], top.n_vertices)
+    pattern = StencilPattern.from_stencils([top.edges, top.hinges], top.n_vertices)
     build = time.perf_counter() - t0
     blocks = [edge_membrane(x, top.edges, rest.rest_lengths).blocks,
-              area_membrane(x, top.faces, rest.rest_areas).blocks,
               hinge_bending(x, top.hinges, rest.rest_angles, rest.hinge_weights).blocks]
     contributions = list(zip(pattern.maps, blocks, strict=True))
     t = best_time(lambda: assemble(pattern, contributions), repeat)

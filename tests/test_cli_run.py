@@ -41,6 +41,13 @@ def five_frames(tmp_path_factory) -> tuple[subprocess.CompletedProcess[str], Pat
     return wrinkles("run", str(DEFAULT), "--frames", "5", "--out", str(out)), out
 
 
+def output_of(run: tuple[subprocess.CompletedProcess[str], Path]) -> Path:
+    """The output directory of a run that must have succeeded."""
+    proc, out = run
+    assert proc.returncode == 0, proc.stderr
+    return out
+
+
 def test_run_exits_zero_with_one_progress_line_per_frame(five_frames):
     proc, _ = five_frames
     assert proc.returncode == 0, proc.stderr
@@ -51,7 +58,7 @@ def test_run_exits_zero_with_one_progress_line_per_frame(five_frames):
 
 
 def test_xdmf_series_read_back_by_meshio(five_frames):
-    _, out = five_frames
+    out = output_of(five_frames)
     assert (out / "body.xdmf").is_file() and (out / "body.h5").is_file()
     points, steps = read_series(out / "body.xdmf")
     assert len(steps) == 6  # the initial state and 5 frames
@@ -71,7 +78,7 @@ def test_xdmf_series_read_back_by_meshio(five_frames):
 
 
 def test_h5_agrees_with_meshio(five_frames):
-    _, out = five_frames
+    out = output_of(five_frames)
     points, steps = read_series(out / "body.xdmf")
     with h5py.File(out / "body.h5", "r") as h5:
         np.testing.assert_array_equal(h5["Mesh/mesh/geometry"][...], points)
@@ -83,7 +90,7 @@ def test_h5_agrees_with_meshio(five_frames):
 
 
 def test_summary_has_one_record_per_frame(five_frames):
-    _, out = five_frames
+    out = output_of(five_frames)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["run"]["status"] == "completed" and summary["run"]["ranks"] == 1
     assert [r["frame"] for r in summary["frames"]] == [1, 2, 3, 4, 5]

@@ -8,7 +8,7 @@ import pytest
 from skfem import Basis, ElementTriP1, ElementVector, MeshTri, asm
 from skfem.models.elasticity import linear_elasticity
 
-from meshes.shells import equilateral_plate
+from meshes.shells import equilateral_plate, wrap_on_cylinder
 from models.errors import InputError
 from models.shell.membrane import area_membrane, edge_membrane
 from models.shell.rest import RestState
@@ -17,6 +17,7 @@ from models.shell.stiffness import (
     bending_stiffness,
     edge_lattice_moduli,
     membrane_stiffness,
+    plate_bending_stiffness,
     shear_modulus_ratio,
     shell_stiffness,
 )
@@ -110,6 +111,9 @@ def test_mapping_limits_and_bending() -> None:
         ShellMaterial(thickness=0.0)
     k = shell_stiffness(mat)
     assert k["k_B"] == bending_stiffness(mat) == pytest.approx(3.0 * 0.1**3 / (24 * (8 / 9)))
+    assert shell_stiffness(mat, calibration="cylinder")["k_B"] == pytest.approx(k["k_B"] / 3)
+    with pytest.raises(InputError, match="calibration"):
+        bending_stiffness(mat, "plate")  # type: ignore[arg-type]
 
 
 def _skfem_energy(p: np.ndarray, faces: np.ndarray, u: np.ndarray, mat: ShellMaterial) -> float:
@@ -151,3 +155,34 @@ def test_skfem_plane_stress_cross_check() -> None:
     order = _order(np.array(hs), np.array(rel))
     print(f"skfem P1 cross-check: rel. difference per level {np.array(rel)}, order {order:.3f}")
     assert np.all(np.diff(rel) < 0) and 0.8 <= order <= 1.2
+
+
+@pytest.mark.parametrize("axis", ["x", "y"])
+def test_cylinder_bending_calibration(axis: str) -> None:
+    """Equilateral plate rolled onto a cylinder (R = 1) about two lattice orientations.
+
+    With k_B = D/2 ("sphere") the hinge energy tends to 3x the plate energy D/2 int R^-2 dA;
+    with k_B = D/6 ("cylinder") it tends to 1 (Richardson-extrapolated, fitted order ~1 from
+    the boundary hinges).
+    """
+    from models.shell.bending import hinge_bending
+
+    mat = ShellMaterial(E=7.0, nu=0.3, thickness=0.02, edge_length=1.0)
+    ratios, hs = [], []
+    for nx in (8, 16, 32, 64):
+        p, top, rest = _plate(nx, 1.0 / nx)
+        q = p if axis == "x" else p[:, [1, 0, 2]]
+        x = wrap_on_cylinder(q, 1.0)
+        w_b = hinge_bending(x, top.hinges, rest.rest_angles, rest.hinge_weights, order=0).value
+        plate = 0.5 * plate_bending_stiffness(mat) * rest.rest_areas.sum()
+        ratios.append(bending_stiffness(mat, "cylinder") * w_b / plate)
+        hs.append(1.0 / nx)
+    ratios_a = np.array(ratios)
+    order = _order(np.array(hs), np.abs(ratios_a - 1.0))
+    limit = 2.0 * ratios_a[-1] - ratios_a[-2]  # Richardson for order 1
+    sphere_limit = limit * bending_stiffness(mat) / bending_stiffness(mat, "cylinder")
+    print(f"cylinder about {axis}: ratio (cylinder calibration) per level {ratios_a}, "
+          f"order {order:.3f}, Richardson limit {limit:.5f}; 'sphere' calibration -> "
+          f"{sphere_limit:.4f}")
+    assert 0.9 <= order <= 1.1 and abs(limit - 1.0) < 2e-3
+    assert sphere_limit == pytest.approx(3.0, rel=2e-3)

@@ -1,6 +1,7 @@
 """Command-line interface of the ``wrinkles`` console script.
 
-``wrinkles run SCENE.toml [--out DIR] [--frames N] [--set key=value ...]`` runs a scene;
+``wrinkles run SCENE.toml [--out DIR] [--frames N] [--set key=value ...] [--restart]`` runs a
+scene (``--restart`` continues the run in ``DIR`` from its last completed frame);
 ``wrinkles check SCENE.toml [--set key=value ...]`` validates it and prints it resolved (JSON).
 
 Exit codes: 0 ok; 1 bad input (``InputError``: one line ``error: <message>`` on stderr, no
@@ -50,6 +51,8 @@ def build_parser() -> ArgumentParser:
                      help="output directory (default: out/<scene name>)")
     run.add_argument("--frames", type=int, default=None, help="number of frames to run "
                      "(replaces time.frames / time.end_time)")
+    run.add_argument("--restart", action="store_true", help="continue the run in --out "
+                     "from its last completed frame (same scene; time, output, newton may change)")
     add_scene_arguments(commands.add_parser(
         "check", help="validate a scene file and print the resolved scene as JSON"))
     return parser
@@ -79,7 +82,8 @@ def command_run(args: argparse.Namespace) -> int:
     if args.frames is not None:
         scene = with_frames(scene, args.frames)
     out = args.out if args.out is not None else Path("out") / args.scene.stem
-    run_scene(scene, out, MPI.COMM_WORLD, log=lambda line: print(line, flush=True))
+    run_scene(scene, out, MPI.COMM_WORLD, log=lambda line: print(line, flush=True),
+              restart=args.restart)
     return 0
 
 

@@ -28,6 +28,8 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+import h5py
+
 from models.backend import MPI, PETSc, dolfinx
 from models.errors import InputError
 
@@ -47,12 +49,15 @@ class OutputOptions:
         xdmf: write the body time series ``body.xdmf`` + ``body.h5``.
         every: write the XDMF fields every N-th frame (the last frame is always written); >= 1.
         summary: write ``summary.json`` (resolved scene, versions, per-frame records).
+        checkpoint: write ``checkpoint.h5`` (body state of the last completed frame) so that
+            ``wrinkles run --restart`` can continue the run.
 
     """
 
     xdmf: bool = True
     every: int = 1
     summary: bool = True
+    checkpoint: bool = True
 
     def __post_init__(self) -> None:
         if self.every < 1:
@@ -84,17 +89,25 @@ class XdmfSeries:
     Args:
         path: the ``.xdmf`` file (the ``.h5`` file goes beside it).
         fields: output name -> vector field (P1 or P2), e.g. ``{"displacement": u}``.
+        resume_after: ``None`` to start a new file; for a restart, the time [s] of the
+            restored state: the existing file is kept and its steps after that time are
+            removed (XML and HDF5 data), so the rerun frames replace them.
 
     """
 
-    def __init__(self, path: Path, fields: Mapping[str, dolfinx.fem.Function]) -> None:
+    def __init__(self, path: Path, fields: Mapping[str, dolfinx.fem.Function],
+                 resume_after: float | None = None) -> None:
         self.path = path
         self.fields = dict(fields)
         self._nodal = {name: p1_function(u, name) for name, u in self.fields.items()}
         mesh = next(iter(self.fields.values())).function_space.mesh
         self.comm = mesh.comm
-        with dolfinx.io.XDMFFile(self.comm, str(path), "w") as xdmf:
-            xdmf.write_mesh(mesh)
+        if resume_after is None:
+            with dolfinx.io.XDMFFile(self.comm, str(path), "w") as xdmf:
+                xdmf.write_mesh(mesh)
+        elif self.comm.rank == 0:
+            drop_steps_after(path, resume_after)
+        self.comm.barrier()
 
     def write(self, t: float) -> None:
         """Append the current values of the fields at physical time ``t`` [s]."""
@@ -151,6 +164,27 @@ def _merge_step(steps: dict[str, ET.Element], grid: ET.Element) -> None:
     for attribute in grid.findall("Attribute"):
         if attribute.get("Name") not in names:
             steps[key].append(attribute)
+
+
+def drop_steps_after(path: Path, t: float) -> None:
+    """Remove the steps later than ``t`` [s] from a merged XDMF file and their HDF5 data."""
+    if not path.is_file():
+        raise InputError(f"{path}: no XDMF file to resume")
+    merge_time_collections(path)
+    tree = ET.parse(path)
+    late = [(c, g) for c in tree.getroot().iter("Grid") for g in c.findall("Grid")
+            if float(_step_key(g)) > t + 1e-12 * max(1.0, abs(t))]
+    datasets = [item.text.split(":", 1)[1] for _, g in late
+                for item in g.iter("DataItem") if item.text and ":" in item.text]
+    with h5py.File(path.with_suffix(".h5"), "a") as h5:
+        for name in datasets:
+            if name.strip() in h5:
+                del h5[name.strip()]
+    for collection, grid in late:
+        collection.remove(grid)
+    tmp = path.with_suffix(".xdmf.tmp")
+    tree.write(tmp, xml_declaration=True, encoding="utf-8")
+    os.replace(tmp, path)
 
 
 ET.register_namespace("xi", XI[1:-1])

@@ -18,12 +18,13 @@ and no rank waits forever in a collective call.
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -32,6 +33,13 @@ from meshes.tetmesh import TetMesh
 from models.backend import MPI, dolfinx, mesh_from_arrays
 from models.body import Body, StepReport
 from models.errors import InputError, SolverError, WrinklesError
+from wrinkles.checkpoint import (
+    CHECKPOINT_NAME,
+    gather_state,
+    read_state,
+    scatter_state,
+    write_state,
+)
 from wrinkles.output import (
     SUMMARY_NAME,
     XDMF_NAME,
@@ -102,6 +110,11 @@ def on_root[T](comm: MPI.Comm, make: Callable[[], T]) -> T | None:
     if failure is not None:
         raise failure[0](failure[1])
     return value
+
+
+def shared[T](comm: MPI.Comm, make: Callable[[], T]) -> T:
+    """Run ``make()`` on rank 0 (errors raised everywhere) and broadcast its value."""
+    return cast(T, comm.bcast(on_root(comm, make), root=0))
 
 
 # --------------------------------------------------------------------------------------------
@@ -192,21 +205,107 @@ class Run:
         return self.scene.time.n_frames(self.scene.body.dt)
 
 
-def prepare(scene: Scene, out: Path, comm: MPI.Comm) -> Run:
-    """Create the output directory, the distributed mesh, the body and its stage (collective)."""
+def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False) -> Run:
+    """Create the output directory, the distributed mesh, the body and its stage (collective).
+
+    With ``restart`` the body state, the frame records and the XDMF series are taken over
+    from the run in ``out`` (its last completed frame); otherwise a new run starts at t = 0.
+    """
     on_root(comm, lambda: make_output_dir(out))
     mesh = distributed_mesh(scene.mesh, comm)
     body = Body(mesh, scene.material, scene.body, scene.newton)
     stages: list[tuple[str, Stage]] = [("body", body_stage(body, scene.time.steps_per_frame))]
-    series = XdmfSeries(out / XDMF_NAME, output_fields(body)) if scene.output.xdmf else None
-    run = Run(scene, out, body, stages, series)
+    run = Run(scene, out, body, stages)
     run.facts = {"ranks": comm.size, "status": "running", "frames_planned": run.n_frames,
                  "started": datetime.now(UTC).isoformat(timespec="seconds"),
                  "mesh": mesh_facts(mesh, body)}
-    if series is not None:
-        series.write(body.t)
-    write_summary(run)
+    if restart:
+        resume(run)
+    else:
+        start(run)
     return run
+
+
+def start(run: Run) -> None:
+    """Write the mesh and the initial state (frame 0) of a new run."""
+    if run.scene.output.xdmf:
+        run.series = XdmfSeries(run.out / XDMF_NAME, output_fields(run.body))
+        run.series.write(run.body.t)
+    save_frame(run, 0)
+
+
+def resume(run: Run) -> None:
+    """Take over the state, records and output of the run in ``run.out`` (collective).
+
+    Raises:
+        InputError: no checkpoint or summary in ``run.out``, or its scene differs from this
+            one in anything but ``time``, ``output`` and ``newton``.
+
+    """
+    if run.scene.body.dynamics == "newmark":
+        raise InputError("--restart: body.dynamics = 'newmark' cannot be restarted yet "
+                         "(Body has no way to mark its restored acceleration as valid)")
+    state = shared(run.comm, lambda: read_state(run.out / CHECKPOINT_NAME))
+    records, facts = shared(run.comm, lambda: previous_run(run, state.frame))
+    scatter_state(run.body, state)
+    run.records = records
+    run.facts["restarts"] = [*facts.get("restarts", []), {"frame": state.frame,
+                                                          "time": state.time,
+                                                          "ranks": run.comm.size}]
+    if run.scene.output.xdmf:
+        run.series = XdmfSeries(run.out / XDMF_NAME, output_fields(run.body),
+                                resume_after=state.time)
+    write_summary(run)
+
+
+def previous_run(run: Run, frame: int) -> tuple[list[FrameRecord], dict[str, Any]]:
+    """Read ``summary.json`` of the run being restarted: its first ``frame`` records and facts.
+
+    Raises:
+        InputError: the summary is missing, or the scene changed (but time, output, newton).
+
+    """
+    path = run.out / SUMMARY_NAME
+    try:
+        summary = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: cannot read the summary of the run to restart "
+                         f"({exc})") from None
+    changed = first_difference(summary.get("scene", {}), jsonable(scene_dict(run.scene)),
+                               ignore=("time", "output", "newton"))
+    if changed is not None:
+        raise InputError(f"--restart: the scene differs from the run in {run.out} at "
+                         f"'{changed}' (only time, output and newton may change)")
+    records = [FrameRecord(**r) for r in summary.get("frames", [])[:frame]]
+    return records, summary.get("run", {})
+
+
+def jsonable(data: Any) -> Any:
+    """Return ``data`` as it reads back from JSON (tuples become lists)."""
+    return json.loads(json.dumps(data))
+
+
+def first_difference(old: Any, new: Any, prefix: str = "",
+                     ignore: tuple[str, ...] = ()) -> str | None:
+    """Return the first dotted key whose value differs between two JSON documents."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        for key in sorted(set(old) | set(new)):
+            if key in ignore:
+                continue
+            found = first_difference(old.get(key), new.get(key), f"{prefix}.{key}".strip("."))
+            if found is not None:
+                return found
+        return None
+    return None if old == new else (prefix or "<root>")
+
+
+def save_frame(run: Run, frame: int) -> None:
+    """Write the summary and the restart checkpoint of a completed frame (collective)."""
+    write_summary(run)
+    if run.scene.output.checkpoint:
+        state = gather_state(run.body, frame)
+        if state is not None:
+            write_state(run.out / CHECKPOINT_NAME, state)
 
 
 def make_output_dir(out: Path) -> None:
@@ -262,7 +361,7 @@ def run_frames(run: Run, log: Callable[[str], None] = print) -> Run:
             and the frames completed before it stay on disk.
 
     """
-    for frame in range(1, run.n_frames + 1):
+    for frame in range(len(run.records) + 1, run.n_frames + 1):
         try:
             record = run_frame(run, frame)
         except SolverError as exc:
@@ -270,7 +369,7 @@ def run_frames(run: Run, log: Callable[[str], None] = print) -> Run:
             write_summary(run)
             raise
         run.records.append(record)
-        write_summary(run)
+        save_frame(run, frame)
         if run.comm.rank == 0:
             log(record.progress_line(run.n_frames))
     run.facts["status"] = "completed"
@@ -278,7 +377,7 @@ def run_frames(run: Run, log: Callable[[str], None] = print) -> Run:
     return run
 
 
-def run_scene(scene: Scene, out: Path, comm: MPI.Comm,
-              log: Callable[[str], None] = print) -> Run:
-    """Prepare ``scene`` (mesh, body, output in ``out``) and run all its frames."""
-    return run_frames(prepare(scene, out, comm), log)
+def run_scene(scene: Scene, out: Path, comm: MPI.Comm, log: Callable[[str], None] = print,
+              restart: bool = False) -> Run:
+    """Prepare ``scene`` (mesh, body, output in ``out``) and run its (remaining) frames."""
+    return run_frames(prepare(scene, out, comm, restart), log)

@@ -49,7 +49,6 @@ from models.shell.assembly import (
     project_psd_blocks,
 )
 
-_MODE_CODE = {"exact": 0, "gauss_newton": 1, "projected": 2}
 _FLOOR = 1e-12
 """Current length / doubled area below ``_FLOOR`` times the rest value is clamped to it, so a
 collapsed edge or face yields large but finite derivatives (never inf/NaN)."""

@@ -27,11 +27,20 @@ Two mappings (:func:`membrane_stiffness`):
   Exact linearised plane-stress response on the equilateral lattice for any strain.
 
 Bending: ``k_B = D / 2 = E h^3 / (24 (1 - nu^2))`` (plate stiffness ``D = E h^3 / (12 (1 -
-nu^2))``). The hinge sum ``sum_h 3 |e|^2 / (A1 + A2) theta^2`` reproduces the mean-curvature
-integral ``int (k1 + k2)^2 dA`` for a sphere (16 pi), so ``k_B W_B ~ D/2 int (2H)^2 dA`` there;
-for other curvature states the discrete limit depends on the lattice (for the equilateral
-lattice ``(k1 + k2)^2 + 2 (k1 - k2)^2``, i.e. a cylinder gets 3x the plate energy: measured
-and documented in :mod:`models.shell.bending`).
+nu^2))``), calibration "sphere". The hinge sum ``sum_h 3 |e|^2 / (A1 + A2) theta^2`` tends to
+the mean-curvature integral ``int (k1 + k2)^2 dA`` for a sphere (16 pi), so
+``k_B W_B ~ D/2 int (2H)^2 dA`` there. Other curvature states converge to lattice-dependent
+limits: on the equilateral lattice the hinge density tends to ``(k1 + k2)^2 + 2 (k1 - k2)^2``
+(:mod:`models.shell.bending`; re-measured in ``tests/test_shell_core_stiffness.py``: a
+cylinder of radius R gives ``3 / R^2`` per unit area in both lattice orientations), so with
+``D / 2`` a cylindrical bend (k2 = 0: the shape of a wrinkle) costs **3x** the plate energy
+``D/2 int k1^2 dA`` and the wrinkle wavelength ``~ D^(1/3)`` would come out ``3^(1/3) = 1.44x``
+too long. Calibration "cylinder" uses ``k_B = D / 6`` so that single-curvature bending
+(wrinkles, cylinders) is exact in the limit on equilateral-type meshes, at the price of a
+sphere energy 1/3 of the plate value. No single k_B matches both: the discrete energy equals
+3x a plate energy with Poisson ratio -1/3, whatever the material nu. Right-triangle grids are
+anisotropic (a cylinder along a grid line gives 3, along the diagonal 9 or 4.5: see
+:mod:`models.shell.bending`), so "cylinder" is calibrated for equilateral-type lattices only.
 
 ARCSim's bending weight differs from ``D/2`` by a factor; :func:`bending_stiffness_from_arcsim`
 converts explicitly (see its docstring for the convention assumed).
@@ -47,6 +56,10 @@ import numpy as np
 from models.errors import InputError
 
 MembraneMapping = Literal["equibiaxial", "isotropic"]
+BendingCalibration = Literal["sphere", "cylinder"]
+
+BENDING_CALIBRATION: dict[str, float] = {"sphere": 0.5, "cylinder": 1.0 / 6.0}
+"""k_B / D per calibration (module docstring): "sphere" D/2, "cylinder" D/6."""
 
 ARCSIM_BENDING_FACTOR: float = 1.0 / 24.0
 """Assumed ratio of ARCSim's bending weight to ``k_B = E h^3 / (24 (1 - nu^2))`` (MISSION.md
@@ -126,9 +139,25 @@ def shear_modulus_ratio(mat: ShellMaterial) -> float:
     return float(mu_h / (mat.E * mat.thickness / (2.0 * (1.0 + mat.nu))))
 
 
-def bending_stiffness(mat: ShellMaterial) -> float:
-    """``k_B = D / 2 = E h^3 / (24 (1 - nu^2))`` (mean-curvature / sphere matching)."""
-    return mat.E * mat.thickness**3 / (24.0 * (1.0 - mat.nu**2))
+def plate_bending_stiffness(mat: ShellMaterial) -> float:
+    """Plate bending stiffness ``D = E h^3 / (12 (1 - nu^2))``."""
+    return mat.E * mat.thickness**3 / (12.0 * (1.0 - mat.nu**2))
+
+
+def bending_stiffness(mat: ShellMaterial, calibration: BendingCalibration = "sphere") -> float:
+    """Hinge bending stiffness k_B from the plate stiffness D (module docstring).
+
+    ``D / 2 = E h^3 / (24 (1 - nu^2))`` ("sphere", mean curvature) or ``D / 6`` ("cylinder":
+    single-curvature bending on equilateral lattices).
+
+    Raises:
+        InputError: unknown calibration.
+
+    """
+    if calibration not in BENDING_CALIBRATION:
+        raise InputError(f"calibration: expected one of {tuple(BENDING_CALIBRATION)}, "
+                         f"got {calibration!r}")
+    return BENDING_CALIBRATION[calibration] * plate_bending_stiffness(mat)
 
 
 def bending_stiffness_from_arcsim(k_arcsim: float) -> float:
@@ -141,8 +170,8 @@ def bending_stiffness_from_arcsim(k_arcsim: float) -> float:
     return k_arcsim / ARCSIM_BENDING_FACTOR
 
 
-def shell_stiffness(mat: ShellMaterial,
-                    mapping: MembraneMapping = "equibiaxial") -> dict[str, float]:
+def shell_stiffness(mat: ShellMaterial, mapping: MembraneMapping = "equibiaxial",
+                    calibration: BendingCalibration = "sphere") -> dict[str, float]:
     """``{"k_L", "k_A", "k_B"}`` for :class:`models.shell.energy.ShellParams`."""
     k_L, k_A = membrane_stiffness(mat, mapping)
-    return {"k_L": k_L, "k_A": k_A, "k_B": bending_stiffness(mat)}
+    return {"k_L": k_L, "k_A": k_A, "k_B": bending_stiffness(mat, calibration)}

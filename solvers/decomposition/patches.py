@@ -1,0 +1,251 @@
+"""Patches of a shell from disjoint vertex sets (section 5 of the draft, MISSION.md section 7).
+
+The cluster partition (``Clusters.partition``, each vertex to its nearest centre) gives
+disjoint vertex sets ``V_i^*``. Patch ``i`` is the union of the one-ring faces of ``V_i^*``;
+its vertex set ``V_i`` adds the *boundary* vertices ``dV_i = V_i \\ V_i^*`` and its edge set is
+the induced one. The draft asks for four conditions on the subgraphs ``G_i = (V_i, E_i)`` of
+the edge graph ``G = (V, E)``:
+
+1. cover: ``U_i G_i = G`` (every vertex and every edge lies in some patch);
+2. induced subgraphs: ``E_i = {(u, v) in E : u in V_i and v in V_i}``;
+3. disjoint interiors: ``V_i^* n V_j^* = {}`` for ``i != j``;
+4. every boundary vertex is interior somewhere: ``v in dV_i => v in V_j^*`` for some j.
+
+(3) and (4) with (1) make every vertex interior to exactly one patch, its *owner*, whose value
+wins when patches are stitched together. :func:`check_patches` verifies all four and raises an
+:class:`InputError` naming the first violating vertex or edge.
+
+Merging (:func:`merge_partition`) reduces the sets to the number of workers: repeatedly the
+smallest group is merged into its adjacent group of smallest vertex count (ties: the longest
+shared boundary), which keeps groups edge-connected, compact and balanced.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from models.errors import InputError
+from models.shell.topology import ShellTopology
+
+
+@dataclass(frozen=True, eq=False)
+class Patch:
+    """One patch ``G_i`` (global vertex, face and edge indices, all sorted).
+
+    Attributes:
+        index: Patch number i.
+        interior: Owned vertices ``V_i^*``.
+        vertices: ``V_i`` = vertices of the one-ring faces of ``V_i^*``.
+        faces: One-ring faces of ``V_i^*`` (global face indices).
+        edges: Induced edges ``E_i`` (global edge indices).
+
+    """
+
+    index: int
+    interior: np.ndarray
+    vertices: np.ndarray
+    faces: np.ndarray
+    edges: np.ndarray
+
+    @property
+    def boundary(self) -> np.ndarray:
+        """Boundary vertices ``dV_i = V_i \\ V_i^*`` (sorted)."""
+        return np.setdiff1d(self.vertices, self.interior, assume_unique=True)
+
+
+@dataclass(frozen=True, eq=False)
+class PatchSet:
+    """Patches covering a shell, every vertex owned by exactly one of them.
+
+    Attributes:
+        patches: The patches, ``patches[i].index == i``.
+        owner: (n,) patch owning each vertex (the one where it is interior).
+
+    """
+
+    patches: tuple[Patch, ...]
+    owner: np.ndarray
+
+    @property
+    def n_patches(self) -> int:
+        """Number of patches."""
+        return len(self.patches)
+
+    def sizes(self) -> np.ndarray:
+        """Owned vertex count of each patch."""
+        return np.bincount(self.owner, minlength=self.n_patches)
+
+
+def relabel(partition: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Map the labels of a (n,) partition onto 0..c-1 (order preserved); validate it."""
+    part = np.asarray(partition)
+    if part.shape != (n_vertices,) or not np.issubdtype(part.dtype, np.integer):
+        raise InputError(f"partition: expected ({n_vertices},) integer labels, got "
+                         f"{part.shape} {part.dtype}")
+    return np.unique(part, return_inverse=True)[1].astype(np.int64)
+
+
+def _group_adjacency(edges: np.ndarray, labels: np.ndarray) -> dict[tuple[int, int], int]:
+    """Number of mesh edges between each pair (a < b) of groups."""
+    a, b = labels[edges[:, 0]], labels[edges[:, 1]]
+    cross = a != b
+    lo, hi = np.minimum(a[cross], b[cross]), np.maximum(a[cross], b[cross])
+    pairs, counts = np.unique(np.column_stack([lo, hi]), axis=0, return_counts=True)
+    return {(int(p[0]), int(p[1])): int(c) for p, c in zip(pairs, counts, strict=True)}
+
+
+def _merge_target(group: int, sizes: dict[int, int],
+                  adjacency: dict[tuple[int, int], int]) -> int:
+    """Adjacent group of smallest size (ties: longest shared boundary) or, if isolated, the
+    smallest other group."""
+    shared = {(b if a == group else a): w for (a, b), w in adjacency.items() if group in (a, b)}
+    if shared:
+        return min(shared, key=lambda g: (sizes[g], -shared[g], g))
+    return min((g for g in sizes if g != group), key=lambda g: (sizes[g], g))
+
+
+def _merge_pair(keep: int, gone: int, sizes: dict[int, int],
+                adjacency: dict[tuple[int, int], int]) -> dict[tuple[int, int], int]:
+    """Merge group ``gone`` into ``keep``: sizes updated in place, new adjacency returned."""
+    sizes[keep] += sizes.pop(gone)
+    merged: dict[tuple[int, int], int] = {}
+    for (a, b), w in adjacency.items():
+        a, b = (keep if a == gone else a), (keep if b == gone else b)
+        if a != b:
+            key = (min(a, b), max(a, b))
+            merged[key] = merged.get(key, 0) + w
+    return merged
+
+
+def merge_partition(topology: ShellTopology, partition: np.ndarray, n_parts: int) -> np.ndarray:
+    """Merge disjoint vertex sets down to ``n_parts`` groups, smallest first.
+
+    Args:
+        topology: Shell connectivity (its edges define adjacency).
+        partition: (n,) set label of each vertex (e.g. ``Clusters.partition``).
+        n_parts: Number of groups wanted (the number of workers).
+
+    Returns:
+        (n,) group labels in 0..n_parts-1.
+
+    Raises:
+        InputError: ``n_parts`` < 1 or larger than the number of sets.
+
+    """
+    labels = relabel(partition, topology.n_vertices)
+    count = int(labels.max()) + 1
+    if not 1 <= n_parts <= count:
+        raise InputError(f"n_parts: must be in [1, {count}] (the number of vertex sets), "
+                         f"got {n_parts}")
+    sizes = {g: int(s) for g, s in enumerate(np.bincount(labels, minlength=count))}
+    adjacency = _group_adjacency(topology.edges, labels)
+    final = np.arange(count)
+    while len(sizes) > n_parts:
+        gone = min(sizes, key=lambda g: (sizes[g], g))
+        keep = _merge_target(gone, sizes, adjacency)
+        adjacency = _merge_pair(keep, gone, sizes, adjacency)
+        final[final == gone] = keep
+    return relabel(final[labels], topology.n_vertices)
+
+
+def _patch(topology: ShellTopology, index: int, interior_mask: np.ndarray) -> Patch:
+    """Patch of one owned set: one-ring faces, their vertices, induced edges."""
+    faces = np.flatnonzero(interior_mask[topology.faces].any(axis=1))
+    vertices = np.unique(topology.faces[faces])
+    in_v = np.zeros(topology.n_vertices, dtype=bool)
+    in_v[vertices] = True
+    edges = np.flatnonzero(in_v[topology.edges].all(axis=1))
+    return Patch(index=index, interior=np.flatnonzero(interior_mask), vertices=vertices,
+                 faces=faces, edges=edges)
+
+
+def build_patches(topology: ShellTopology, partition: np.ndarray,
+                  n_parts: int | None = None) -> PatchSet:
+    """Patches from disjoint vertex sets (merged to ``n_parts`` when given), checked.
+
+    Args:
+        topology: Shell connectivity.
+        partition: (n,) set label of each vertex (``Clusters.partition``).
+        n_parts: Merge the sets down to this many patches; None keeps every set.
+
+    Returns:
+        The checked :class:`PatchSet`.
+
+    Raises:
+        InputError: bad partition or a violated condition (see :func:`check_patches`).
+
+    """
+    labels = (merge_partition(topology, partition, n_parts) if n_parts is not None
+              else relabel(partition, topology.n_vertices))
+    patches = tuple(_patch(topology, p, labels == p) for p in range(int(labels.max()) + 1))
+    check_patches(topology, patches)
+    return PatchSet(patches=patches, owner=labels)
+
+
+def _check_cover(topology: ShellTopology, patches: tuple[Patch, ...]) -> None:
+    """Condition 1: every vertex and every edge lies in some patch."""
+    seen_v = np.zeros(topology.n_vertices, dtype=bool)
+    seen_e = np.zeros(topology.n_edges, dtype=bool)
+    for p in patches:
+        seen_v[p.vertices] = True
+        seen_e[p.edges] = True
+    if not seen_v.all():
+        raise InputError(f"patches: condition 1 (cover) violated: vertex "
+                         f"{int(np.flatnonzero(~seen_v)[0])} is in no patch")
+    if not seen_e.all():
+        e = int(np.flatnonzero(~seen_e)[0])
+        raise InputError(f"patches: condition 1 (cover) violated: edge {e} "
+                         f"{topology.edges[e].tolist()} is in no patch")
+
+
+def _check_induced(topology: ShellTopology, p: Patch) -> None:
+    """Condition 2: the patch's edges are exactly the edges between its vertices."""
+    in_v = np.zeros(topology.n_vertices, dtype=bool)
+    in_v[p.vertices] = True
+    expected = np.flatnonzero(in_v[topology.edges].all(axis=1))
+    diff = np.setxor1d(expected, p.edges)
+    if diff.size:
+        e = int(diff[0])
+        what = "is missing from" if e in set(expected.tolist()) else "does not belong to"
+        raise InputError(f"patches: condition 2 (induced subgraph) violated: edge {e} "
+                         f"{topology.edges[e].tolist()} {what} patch {p.index}")
+
+
+def _check_owners(topology: ShellTopology, patches: tuple[Patch, ...]) -> None:
+    """Conditions 3 and 4: disjoint interiors; each boundary vertex interior somewhere."""
+    owner = np.full(topology.n_vertices, -1, dtype=np.int64)
+    for p in patches:
+        if not np.isin(p.interior, p.vertices).all():
+            v = int(p.interior[~np.isin(p.interior, p.vertices)][0])
+            raise InputError(f"patches: interior vertex {v} of patch {p.index} is not among "
+                             "its vertices")
+        taken = p.interior[owner[p.interior] >= 0]
+        if taken.size:
+            v = int(taken[0])
+            raise InputError(f"patches: condition 3 (disjoint interiors) violated: vertex {v} "
+                             f"is interior to patches {int(owner[v])} and {p.index}")
+        owner[p.interior] = p.index
+    for p in patches:
+        orphan = p.boundary[owner[p.boundary] < 0]
+        if orphan.size:
+            raise InputError(f"patches: condition 4 violated: boundary vertex {int(orphan[0])} "
+                             f"of patch {p.index} is interior to no patch")
+
+
+def check_patches(topology: ShellTopology, patches: tuple[Patch, ...]) -> None:
+    """Verify the draft's four conditions; raise InputError naming the violation.
+
+    Raises:
+        InputError: naming the first uncovered vertex/edge (1), the first missing or extra
+            edge of a patch (2), a vertex interior to two patches (3) or a boundary vertex
+            interior to none (4).
+
+    """
+    if not patches:
+        raise InputError("patches: empty patch set")
+    _check_cover(topology, patches)
+    for p in patches:
+        _check_induced(topology, p)
+    _check_owners(topology, patches)

@@ -48,6 +48,7 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
@@ -223,7 +224,8 @@ def run_case(kind: str, size: str, system: str, args: argparse.Namespace) -> lis
             "dofs": a.shape[0], "nnz": int(a.nnz + (2 * g.nnz + g.shape[0] if g is not None
                                                     else 0)),
             "clusters": int(h.shape[0]), "cluster_support": float(h.getnnz(axis=1).mean()),
-            "t_build": t_build, "t_eval": t_eval, "t_value": t_value}
+            "t_build": t_build, "t_eval": t_eval, "t_value": t_value,
+            "load_average_1min": os.getloadavg()[0]}
     rows = []
     for name in backends_for(system, args.backends, size, args.slow_max):
         opts = BACKENDS.get(name) or LinearSolverOptions("mumps", "lu", "aij")
@@ -289,6 +291,7 @@ def main(argv: list[str] | None = None) -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     meta = {"python": platform.python_version(), "petsc": PETSc.Sys.getVersion(),
             "machine": platform.machine(), "omp_threads": os.environ.get("OMP_NUM_THREADS"),
+            "cpus": os.cpu_count(), "load_average_end": os.getloadavg(),
             "reference_cholmod_s": {"10k": 0.35, "40k": 2.3, "160k": "15-18"},
             "units": "seconds; MB = MUMPS INFOG(22); RSS = peak MiB during the backend"}
     args.out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))

@@ -402,3 +402,14 @@ def test_builder_params_nested_dataclass(tmp_path):
     message = load_error(tmp_path, text.replace("h = 0.2", "h = 0.2, cache = false"))
     assert message == "scene.toml: unknown key 'mesh.params.cache'"  # not the scene's business
     assert scene_from_dict(json.loads(json.dumps(scene_dict(scene))), tmp_path) == scene
+
+
+@pytest.mark.parametrize(("extra", "expected"), [
+    ("\n[output]\nevery = 0\n", "scene.toml: output.every must be >= 1, got 0"),
+    ("\n[time]\nframes = 0\n", "scene.toml: time.frames must be >= 1, got 0"),
+    ("\n[time]\nsteps_per_frame = 0\n", "scene.toml: time.steps_per_frame must be >= 1, got 0"),
+    ("\n[newton]\nmax_it = 0\n", "scene.toml: newton.max_it must be >= 1, got 0"),
+    ("\n[output]\nxdmf = 1\n", "scene.toml: output.xdmf: expected bool, got int 1"),
+])
+def test_value_checks_of_the_other_tables(tmp_path, extra, expected):
+    assert load_error(tmp_path, BASE + extra) == expected

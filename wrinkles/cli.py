@@ -18,6 +18,7 @@ agreement the failing rank prints its message and calls ``MPI_Abort`` with the e
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -25,7 +26,7 @@ import time
 import traceback
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from models.errors import InputError, WrinklesError
 
@@ -126,9 +127,9 @@ def fail_collectively(exc: BaseException) -> int:
     code = exc.exit_code if isinstance(exc, WrinklesError) else 2
     if comm.size == 1:
         return report(exc)
-    request = _AGREE_COMM.Ibarrier() if _AGREE_COMM is not None else None
+    request = agreement_comm().Ibarrier()
     deadline = time.monotonic() + AGREE_SECONDS
-    while request is not None and not request.Test():
+    while not request.Test():
         if time.monotonic() > deadline:
             print(f"[rank {comm.rank}] ", end="", file=sys.stderr)
             report(exc)
@@ -139,17 +140,15 @@ def fail_collectively(exc: BaseException) -> int:
     return code
 
 
-_AGREE_COMM = None
-"""Duplicate of COMM_WORLD used only to agree on failures (never mixed with solver traffic)."""
+@functools.cache
+def agreement_comm() -> Any:
+    """Duplicate of COMM_WORLD used only to agree on failures (never mixed with solver traffic).
 
-
-def _init_agreement() -> None:
-    """Duplicate COMM_WORLD for :func:`fail_collectively` (collective, once per process)."""
-    global _AGREE_COMM
+    Creating it is collective: :func:`main` calls this on every rank before any work.
+    """
     from models.backend import MPI
 
-    if MPI.COMM_WORLD.size > 1 and _AGREE_COMM is None:
-        _AGREE_COMM = MPI.COMM_WORLD.Dup()
+    return MPI.COMM_WORLD.Dup()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -160,7 +159,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except InputError as exc:
         return report(exc)
     try:
-        _init_agreement()
+        agreement_comm()
         return COMMANDS[args.command](args)
     except Exception as exc:  # noqa: BLE001  (mapped to exit codes, see module doc)
         return fail_collectively(exc)

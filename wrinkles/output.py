@@ -29,9 +29,11 @@ from pathlib import Path
 from typing import Any
 
 import h5py
+import numpy as np
 
 from models.backend import MPI, PETSc, dolfinx
 from models.errors import InputError
+from wrinkles.collective import on_root
 
 XDMF_NAME = "body.xdmf"
 SUMMARY_NAME = "summary.json"
@@ -105,9 +107,9 @@ class XdmfSeries:
         if resume_after is None:
             with dolfinx.io.XDMFFile(self.comm, str(path), "w") as xdmf:
                 xdmf.write_mesh(mesh)
-        elif self.comm.rank == 0:
-            drop_steps_after(path, resume_after)
-        self.comm.barrier()
+        else:
+            geometry = written_geometry(mesh)
+            on_root(self.comm, lambda: resume_file(path, geometry, resume_after))
 
     def write(self, t: float) -> None:
         """Append the current values of the fields at physical time ``t`` [s]."""
@@ -166,10 +168,42 @@ def _merge_step(steps: dict[str, ET.Element], grid: ET.Element) -> None:
             steps[key].append(attribute)
 
 
+def written_geometry(mesh: dolfinx.mesh.Mesh) -> np.ndarray | None:
+    """Gather the node coordinates in the order ``XDMFFile.write_mesh`` stores them.
+
+    Each rank writes its owned geometry nodes, in rank order (collective; the array is
+    returned on rank 0, ``None`` elsewhere).
+    """
+    owned = mesh.geometry.index_map().size_local
+    parts = mesh.comm.gather(mesh.geometry.x[:owned].copy(), root=0)
+    return None if parts is None else np.concatenate(parts)
+
+
+def resume_file(path: Path, geometry: np.ndarray | None, t: float) -> None:
+    """Check that new steps can be appended to ``path``, then drop its steps after ``t``.
+
+    Appended nodal values follow the node order of this run's partition, so the mesh stored
+    in the file must have exactly that order (same mesh, same number of ranks).
+
+    Raises:
+        InputError: no such file, or its mesh is stored in another node order.
+
+    """
+    h5_path = path.with_suffix(".h5")
+    if not (path.is_file() and h5_path.is_file()):
+        raise InputError(f"{path}: no XDMF time series to continue")
+    with h5py.File(h5_path, "r") as h5:
+        stored = h5["Mesh/mesh/geometry"][...]
+    if geometry is None or stored.shape != geometry.shape or not np.array_equal(stored,
+                                                                                geometry):
+        raise InputError(f"{path}: its mesh was written with another node order (another "
+                         "number of MPI ranks?); restart on the original number of ranks, or "
+                         "with --set output.xdmf=false")
+    drop_steps_after(path, t)
+
+
 def drop_steps_after(path: Path, t: float) -> None:
-    """Remove the steps later than ``t`` [s] from a merged XDMF file and their HDF5 data."""
-    if not path.is_file():
-        raise InputError(f"{path}: no XDMF file to resume")
+    """Remove the steps later than ``t`` [s] from an XDMF file and their HDF5 data."""
     merge_time_collections(path)
     tree = ET.parse(path)
     late = [(c, g) for c in tree.getroot().iter("Grid") for g in c.findall("Grid")

@@ -10,9 +10,13 @@ after it without touching the loop::
     run.stages.append(("shell", shell_stage))  # e.g. target y = B (X_q + u_q), minimise W
     run_frames(run, log)
 
+After every frame the summary and a checkpoint of the body state (:mod:`wrinkles.checkpoint`)
+are written; ``prepare(..., restart=True)`` continues a run from its last completed frame:
+state, frame records and XDMF series are taken over, later output is dropped and recomputed.
+
 Parallel runs: rank 0 builds or reads the mesh (gmsh and meshio are serial) and dolfinx
-distributes it; an ``InputError`` on rank 0 is broadcast so every rank raises the same error
-and no rank waits forever in a collective call.
+distributes it; an ``InputError`` on rank 0 is broadcast (:mod:`wrinkles.collective`) so every
+rank raises the same error and no rank waits forever in a collective call.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 
@@ -32,7 +36,7 @@ import meshes
 from meshes.tetmesh import TetMesh
 from models.backend import MPI, dolfinx, mesh_from_arrays
 from models.body import Body, StepReport
-from models.errors import InputError, SolverError, WrinklesError
+from models.errors import InputError, SolverError
 from wrinkles.checkpoint import (
     CHECKPOINT_NAME,
     gather_state,
@@ -40,6 +44,7 @@ from wrinkles.checkpoint import (
     scatter_state,
     write_state,
 )
+from wrinkles.collective import on_root, shared
 from wrinkles.output import (
     SUMMARY_NAME,
     XDMF_NAME,
@@ -86,35 +91,6 @@ class FrameRecord:
         return (f"frame {self.frame:4d}/{n_frames}  t={self.time:9.4f} s  "
                 f"newton={self.newton_iterations:3d}  energy={self.energy: .6e} J  "
                 f"min detF={self.min_det_f:.4f}  wall={self.wall_time:7.3f} s")
-
-
-# --------------------------------------------------------------------------------------------
-# Collective error handling
-
-
-def on_root[T](comm: MPI.Comm, make: Callable[[], T]) -> T | None:
-    """Run ``make()`` on rank 0 only; re-raise its ``WrinklesError`` on every rank.
-
-    Returns:
-        ``make()``'s value on rank 0, ``None`` elsewhere.
-
-    """
-    value: T | None = None
-    failure: tuple[type[WrinklesError], str] | None = None
-    if comm.rank == 0:
-        try:
-            value = make()
-        except WrinklesError as exc:
-            failure = (type(exc), str(exc))
-    failure = comm.bcast(failure, root=0)
-    if failure is not None:
-        raise failure[0](failure[1])
-    return value
-
-
-def shared[T](comm: MPI.Comm, make: Callable[[], T]) -> T:
-    """Run ``make()`` on rank 0 (errors raised everywhere) and broadcast its value."""
-    return cast(T, comm.bcast(on_root(comm, make), root=0))
 
 
 # --------------------------------------------------------------------------------------------
@@ -276,7 +252,13 @@ def previous_run(run: Run, frame: int) -> tuple[list[FrameRecord], dict[str, Any
     if changed is not None:
         raise InputError(f"--restart: the scene differs from the run in {run.out} at "
                          f"'{changed}' (only time, output and newton may change)")
-    records = [FrameRecord(**r) for r in summary.get("frames", [])[:frame]]
+    try:
+        records = [FrameRecord(**r) for r in summary.get("frames", [])[:frame]]
+    except TypeError as exc:
+        raise InputError(f"{path}: frame records of another format ({exc})") from None
+    if len(records) != frame:
+        raise InputError(f"{path}: has {len(records)} frame records, the checkpoint is at "
+                         f"frame {frame}")
     return records, summary.get("run", {})
 
 
@@ -287,11 +269,12 @@ def jsonable(data: Any) -> Any:
 
 def first_difference(old: Any, new: Any, prefix: str = "",
                      ignore: tuple[str, ...] = ()) -> str | None:
-    """Return the first dotted key whose value differs between two JSON documents."""
+    """Return the first dotted key whose value differs between two JSON documents.
+
+    ``ignore`` lists top-level keys left out of the comparison.
+    """
     if isinstance(old, dict) and isinstance(new, dict):
-        for key in sorted(set(old) | set(new)):
-            if key in ignore:
-                continue
+        for key in sorted((set(old) | set(new)) - set(ignore)):
             found = first_difference(old.get(key), new.get(key), f"{prefix}.{key}".strip("."))
             if found is not None:
                 return found

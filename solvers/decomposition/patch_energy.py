@@ -25,8 +25,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from models.errors import InputError
+from models.shell.bending import hinge_bending
 from models.shell.dofs import check_positions
 from models.shell.energy import ShellEnergy, ShellEval, ShellParams
+from models.shell.membrane import area_membrane, edge_membrane
+from models.shell.penalty import PenaltyOperator, penalty_term
 from models.shell.rest import RestState
 from models.shell.topology import ShellTopology
 
@@ -139,6 +142,7 @@ class PatchEnergy:
         self.energy = self._local_energy(problem, faces, h_rows)
         self._x = problem.rest.positions[self.local].copy()
         self._hess_map: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._owned_terms = self._owned_stencils(h_rows)
 
     def _local_energy(self, problem: ShellProblem, faces: np.ndarray,
                       h_rows: sp.csr_matrix | None) -> ShellEnergy:
@@ -149,9 +153,52 @@ class PatchEnergy:
         rest = slice_rest(problem, self.local, faces, topo)
         params = problem.params if h_rows is not None else replace(problem.params, k_P=0.0)
         h_local = sp.csr_matrix(h_rows[:, self.local]) if h_rows is not None else None
+        self._h_local = h_local
         energy = ShellEnergy(topo, rest, params, H=h_local)
         energy.set_target(problem.target[self.local])
         return energy
+
+    def _is_owned(self, stencils: np.ndarray) -> np.ndarray:
+        """Stencils (local ids) whose smallest global vertex is owned by this patch."""
+        if stencils.shape[0] == 0:
+            return np.zeros(0, dtype=bool)
+        return np.isin(self.local[stencils].min(axis=1), self.interior)
+
+    def _owned_stencils(self, h_rows: sp.csr_matrix | None) -> dict[str, np.ndarray]:
+        """Masks of the stencils assigned to this patch (each global stencil to exactly one
+        patch: the owner of its smallest global vertex; a penalty row likewise by its
+        support)."""
+        topo = self.energy.topology
+        out = {"edges": self._is_owned(topo.edges), "faces": self._is_owned(topo.faces),
+               "hinges": self._is_owned(topo.hinges)}
+        if h_rows is not None:
+            first = np.minimum.reduceat(h_rows.indices, h_rows.indptr[:-1])
+            out["rows"] = np.isin(first, self.interior)
+        return out
+
+    def owned_energy(self) -> float:
+        """Energy of the stencils assigned to this patch at the current state.
+
+        Summed over all patches this is exactly W(x) (every stencil counted once), which
+        makes global energy comparisons (line search, safeguards) a scalar reduction.
+        """
+        e, p, r, x, m = (self.energy, self.energy.params, self.energy.rest, self._x,
+                         self._owned_terms)
+        total = 0.0
+        if p.k_L > 0 and m["edges"].any():
+            total += edge_membrane(x, e.topology.edges[m["edges"]], r.rest_lengths[m["edges"]],
+                                   order=0, stiffness=p.k_L).value
+        if p.k_A > 0 and m["faces"].any():
+            total += area_membrane(x, e.topology.faces[m["faces"]], r.rest_areas[m["faces"]],
+                                   order=0, stiffness=p.k_A).value
+        if p.k_B > 0 and m["hinges"].any():
+            h = m["hinges"]
+            total += hinge_bending(x, e.topology.hinges[h], r.rest_angles[h],
+                                   p.k_B * r.hinge_weights[h], order=0).value
+        if "rows" in m and m["rows"].any():
+            op = PenaltyOperator.from_matrix(self._h_local[m["rows"]], self.local.size)
+            total += penalty_term(x, e.target, op, order=0, stiffness=p.k_P).value
+        return float(total)
 
     @property
     def n_vertices(self) -> int:

@@ -1,0 +1,166 @@
+"""The whole problem, distributed: monolithic shell Newton with an MPIAIJ Hessian.
+
+The reference parallel method against which the decomposition is measured (MISSION.md
+section 7): the same Newton / SQP iteration as :mod:`solvers.shell_newton` (line search,
+shifts, tolerance, all reused: this module only swaps its linear system), with
+
+* the Hessian as a distributed PETSc ``MATMPIAIJ``, rows split by contiguous vertex ranges
+  (rank r owns dofs ``3 v_r .. 3 v_{r+1} - 1``), its pattern set once by
+  ``MatSetPreallocationCOO`` and its values refreshed by ``MatSetValuesCOO`` (constant
+  nonzero state, so the parallel symbolic analysis is done once);
+* a parallel direct solver, MUMPS (Cholesky / LDL^T with the inertia ``INFOG(12)``, or LU) or
+  SuperLU_dist (LU), through ``KSPPREONLY`` + ``PCFactor``; the solution is allgathered.
+
+Energy, gradient and Hessian are evaluated *redundantly* on every rank (the shell kernels are
+cheap next to the factorisation) and each rank inserts only its own rows: every rank then runs
+the identical Newton iteration in lockstep (same values, same line search decisions). The
+time split (evaluation vs. factorisation vs. solve) is in the :class:`ShellSolveReport`.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from models.backend import MPI, PETSc
+from models.errors import InputError
+from solvers.linear import FactorReport, LinearSolverOptions
+from solvers.shell_newton import (
+    EnergyEval,
+    ShellEnergyLike,
+    ShellNewtonOptions,
+    ShellNewtonSolver,
+    ShellSolveReport,
+)
+
+
+def vertex_ranges(n_vertices: int, size: int) -> np.ndarray:
+    """(size + 1,) vertex offsets of a balanced contiguous split."""
+    return (np.arange(size + 1) * n_vertices) // size
+
+
+class DistributedLinearSystem:
+    """``(A + tau I) dx = b`` with A as MPIAIJ over ``comm``; the ShellNewtonSolver interface.
+
+    Args:
+        comm: mpi4py communicator.
+        options: Backend ("mumps" or "superlu_dist") and factorisation.
+
+    """
+
+    def __init__(self, comm: Any, options: LinearSolverOptions) -> None:
+        if options.backend not in ("mumps", "superlu_dist"):
+            raise InputError(f"LinearSolverOptions.backend: the distributed solve needs "
+                             f"'mumps' or 'superlu_dist', got {options.backend!r}")
+        self.comm, self.options = comm, options
+        self.mat: Any = None
+        self._times = [0.0, 0.0, 0.0]  # factorise, analysis, solve
+
+    def _setup(self, hess: sp.csr_matrix) -> None:
+        """Rows of this rank, COO preallocation, KSP + PCFactor (once)."""
+        offsets = 3 * vertex_ranges(hess.shape[0] // 3, self.comm.size)
+        r0, r1 = int(offsets[self.comm.rank]), int(offsets[self.comm.rank + 1])
+        self._rows = (r0, r1)
+        self._counts = np.diff(offsets).astype(np.int64)
+        self._slice = slice(int(hess.indptr[r0]), int(hess.indptr[r1]))
+        rows = np.repeat(np.arange(r0, r1), np.diff(hess.indptr[r0: r1 + 1]))
+        cols = hess.indices[self._slice]
+        self._diag = np.flatnonzero(rows == cols)
+        n = hess.shape[0]
+        mat = PETSc.Mat().create(comm=self.comm)
+        mat.setSizes(((r1 - r0, n), (r1 - r0, n)))
+        mat.setType(PETSc.Mat.Type.AIJ)
+        mat.setPreallocationCOO(rows.astype(PETSc.IntType), cols.astype(PETSc.IntType))
+        mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        mat.setOption(PETSc.Mat.Option.SPD, self.options.symmetric == "cholesky")
+        self.mat = mat
+        self.ksp = self._create_ksp()
+        self.rhs, self.sol = mat.createVecs()
+
+    def _create_ksp(self) -> Any:
+        """KSPPREONLY with PCFactor of the chosen backend."""
+        ksp = PETSc.KSP().create(comm=self.comm)
+        ksp.setOperators(self.mat)
+        ksp.setType(PETSc.KSP.Type.PREONLY)
+        pc = ksp.getPC()
+        pc.setType("lu" if self.options.symmetric == "lu" else "cholesky")
+        pc.setFactorSolverType(self.options.backend)
+        return ksp
+
+    def factorize(self, ev: EnergyEval, tau: float) -> FactorReport:
+        """Insert this rank's rows of ``A + tau I`` and factorise in parallel."""
+        if ev.hess is None or ev.penalty_factor is not None:
+            raise InputError("ShellParams.penalty_hessian: the distributed solve needs the "
+                             "assembled Hessian ('assembled')")
+        if self.mat is None:
+            self._setup(ev.hess)
+        values = np.array(ev.hess.data[self._slice], dtype=PETSc.ScalarType)
+        values[self._diag] += tau
+        self.mat.setValuesCOO(values)
+        start = time.perf_counter()
+        first = self._times[0] == 0.0
+        pc = self.ksp.getPC()
+        try:
+            pc.setUp()
+            failed = int(pc.getFailedReason())
+        except PETSc.Error:
+            failed = -1
+        elapsed = time.perf_counter() - start
+        self._times[0] += elapsed
+        self._times[1] += elapsed if first else 0.0
+        return self._report(pc, failed, tau, elapsed)
+
+    def _report(self, pc: Any, failed: int, tau: float, elapsed: float) -> FactorReport:
+        """FactorReport with MUMPS INFOG(1) / INFOG(12) when available."""
+        negatives, reason = None, "ok" if failed == 0 else f"PCFailedReason {failed}"
+        if failed != -1 and self.options.backend == "mumps":
+            factor = pc.getFactorMatrix()
+            infog1 = factor.getMumpsInfog(1)
+            if infog1 < 0:
+                failed, reason = 1, f"MUMPS INFOG(1)={infog1}"
+            elif self.options.symmetric != "lu":
+                negatives = int(factor.getMumpsInfog(12))
+        return FactorReport(success=failed == 0, reason=reason, negative_pivots=negatives,
+                            numeric_time=elapsed, shift=float(tau))
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """Solve with the last factorisation; the full solution on every rank."""
+        start = time.perf_counter()
+        r0, r1 = self._rows
+        self.rhs.setArray(np.ascontiguousarray(rhs[r0:r1]))
+        self.ksp.solve(self.rhs, self.sol)
+        full = np.empty(rhs.size)
+        displs = np.concatenate([[0], np.cumsum(self._counts)[:-1]])
+        self.comm.Allgatherv([np.ascontiguousarray(self.sol.getArray()), MPI.DOUBLE],
+                             [full, self._counts, displs, MPI.DOUBLE])
+        self._times[2] += time.perf_counter() - start
+        return full
+
+    def times(self) -> tuple[float, float, float]:
+        """Accumulated (factorise, first factorisation incl. analysis, solve) seconds."""
+        return self._times[0], self._times[1], self._times[2]
+
+
+def distributed_minimize(energy: ShellEnergyLike, x0: np.ndarray,
+                         options: ShellNewtonOptions | None = None,
+                         comm: Any = None) -> tuple[np.ndarray, ShellSolveReport]:
+    """Monolithic shell Newton with the distributed Hessian (see the module docstring).
+
+    Args:
+        energy: The global shell energy (assembled penalty Hessian), built on every rank.
+        x0: (n, 3) start, the same on every rank.
+        options: Newton options; ``options.linear`` picks MUMPS / SuperLU_dist.
+        comm: Communicator (default COMM_WORLD).
+
+    Returns:
+        ``(x, report)``, identical on every rank.
+
+    """
+    opts = options or ShellNewtonOptions()
+    solver = ShellNewtonSolver(energy, opts)
+    solver.linear = DistributedLinearSystem(comm if comm is not None else MPI.COMM_WORLD,
+                                            opts.linear)  # type: ignore[assignment]
+    return solver.minimize(x0)

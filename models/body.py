@@ -330,6 +330,36 @@ class Body:
         """Move the centre of sphere obstacle ``index`` [m] before the next step."""
         self.contacts[index].set_center(center)
 
+    def set_state(self, t: float, u: np.ndarray, v: np.ndarray, a: np.ndarray) -> None:
+        """Set time and state (e.g. from a checkpoint) and mark the acceleration as valid.
+
+        Newmark (beta = 1/4, gamma = 1/2) needs ``a_n`` consistent with ``(u_n, v_n)``: a
+        restored ``a`` is used as is instead of being recomputed from ``M a_0 = -dPi/du``, so
+        a restarted run continues exactly like the uninterrupted one.
+
+        Args:
+            t: Time (load parameter) of the state [s].
+            u: Displacement dof values (local array incl. ghosts, layout of ``u.x.array``) [m].
+            v: Velocity dof values [m/s].
+            a: Acceleration dof values [m/s^2].
+
+        Raises:
+            InputError: an array of the wrong size or with NaN/inf values, or ``t`` not finite.
+
+        """
+        if not math.isfinite(t):
+            raise InputError(f"set_state: t must be finite, got {t}")
+        for name, f, values in (("u", self.u, u), ("v", self.v, v), ("a", self.a, a)):
+            arr = np.asarray(values, dtype=float).reshape(-1)
+            if arr.shape != f.x.array.shape or not np.all(np.isfinite(arr)):
+                raise InputError(f"set_state: {name} must be {f.x.array.size} finite values")
+            f.x.array[:] = arr
+            f.x.scatter_forward()
+        self._rate[:] = 0.0
+        self.t = float(t)
+        self._set_pins(self.t)
+        self._accel_ready = True
+
     def step(self) -> StepReport:
         """Advance by ``options.dt`` (time or load parameter), halving on failure.
 

@@ -189,7 +189,9 @@ class FactorReport:
             augmented system); more than that means the matrix is indefinite.
         analysis_time: Seconds in the symbolic analysis (0 when it was reused).
         numeric_time: Seconds in the numeric factorisation.
-        reused_analysis: True when the symbolic analysis of an earlier call was reused.
+        reused_analysis: True when the symbolic analysis of an earlier call was reused (MUMPS,
+            PETSc; always False for SuperLU_DIST, which logs no separate symbolic phase and
+            only keeps its column ordering, and for scipy).
         shift: Diagonal shift tau added before this factorisation (0 = none).
         factor_nnz: Entries in the factors (MUMPS INFOG(29), PETSc MatGetInfo nz_used, scipy
             nnz(L) + nnz(U)); None when unknown.
@@ -232,6 +234,9 @@ class _Backend(Protocol):
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """Solve with the current factor."""
+
+    def destroy(self) -> None:
+        """Free the factor (and PETSc objects)."""
 
 
 def _check_pattern_csr(matrix: sp.spmatrix, name: str = "matrix") -> sp.csr_matrix:
@@ -311,8 +316,8 @@ class _PetscBackend:
             self._bvalues = np.zeros(self._source.size)
             mat: Any = PETSc.Mat()
             mat.createSBAIJ((self.n, self.n), BLOCK_SIZE,
-                                          csr=(self._bindptr, self._bindices, self._bvalues),
-                                          comm=PETSc.COMM_SELF)
+                            csr=(self._bindptr, self._bindices, self._bvalues),
+                            comm=PETSc.COMM_SELF)
             mat.setOption(PETSc.Mat.Option.ROW_ORIENTED, False)
         else:
             self._indptr = pattern.indptr.astype(PETSc.IntType)
@@ -392,9 +397,19 @@ class _PetscBackend:
         (sym1, nsym1), _ = self._event_totals()
         self.factorizations += 1
         analysis = sym1 - sym0
-        reused = nsym1 == nsym0 and self.factorizations > 1
+        # SuperLU_DIST logs no symbolic event and only keeps its column ordering
+        # (Fact = SamePattern): it is never reported as reusing the analysis
+        reused = (nsym1 == nsym0 and self.factorizations > 1
+                  and self.options.backend != "superlu_dist")
         success, negatives, why = self._factor_info(pc, failed)
         nnz, memory = self._factor_size(pc) if success else (None, None)
+        if not success:
+            # PCSetUp skips the numeric phase while the factor keeps its error flag (petsc4py
+            # has no MatFactorClearError): start again from a fresh KSP, which costs one new
+            # symbolic analysis after a failure only
+            self.ksp.destroy()
+            self.ksp = self._create_ksp()
+            self.factorizations = 0
         return FactorReport(success=success, reason=why if reason == "ok" else reason,
                             negative_pivots=negatives, expected_negative=self.expected_negative,
                             analysis_time=analysis, numeric_time=total - analysis,
@@ -419,7 +434,7 @@ class _PetscBackend:
         if self.options.backend == "mumps":
             infog1 = factor.getMumpsInfog(1)
             if infog1 < 0:
-                return False, None, f"MUMPS INFOG(1)={infog1}, INFO(2)={factor.getMumpsInfog(2)}"
+                return False, None, f"MUMPS INFOG(1)={infog1}, INFOG(2)={factor.getMumpsInfog(2)}"
             negatives = None if self.options.symmetric == "lu" else factor.getMumpsInfog(12)
         elif self.options.backend == "petsc" and self.options.symmetric == "cholesky":
             negatives = int(factor.getInertia()[0]) if failed == 0 else None
@@ -434,6 +449,11 @@ class _PetscBackend:
         self.rhs.setArray(rhs)
         self.ksp.solve(self.rhs, self.sol)
         return self.sol.getArray().copy()
+
+    def destroy(self) -> None:
+        """Destroy the KSP (with its factor), the matrix and the work vectors."""
+        for obj in (self.ksp, self.mat, self.rhs, self.sol):
+            obj.destroy()
 
 
 class _ScipyBackend:
@@ -484,6 +504,10 @@ class _ScipyBackend:
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """Triangular solves with the SuperLU factor."""
         return np.asarray(self.lu.solve(rhs), dtype=np.float64)
+
+    def destroy(self) -> None:
+        """Drop the SuperLU factor."""
+        self.lu = None
 
 
 @dataclass
@@ -567,6 +591,10 @@ class SparseDirectSolver:
         self.stats.solves += 1
         self.stats.solve_time += time.perf_counter() - start
         return x
+
+    def destroy(self) -> None:
+        """Free the factorisation and the PETSc objects now (not at garbage collection)."""
+        self._backend.destroy()
 
     def factorize_shifted(self, matrix: sp.spmatrix, shift: ShiftOptions,
                           start: float = 0.0) -> list[FactorReport]:
@@ -715,6 +743,10 @@ class AugmentedPenaltySolver:
         """``dx`` with ``(A + G^T G) dx = rhs`` from the current factor."""
         full = np.concatenate([np.asarray(rhs, dtype=np.float64), np.zeros(self.m)])
         return self.solver.solve(full)[: self.n]
+
+    def destroy(self) -> None:
+        """Free the factorisation of the augmented matrix."""
+        self.solver.destroy()
 
     def factorize_shifted(self, a: sp.spmatrix, g: sp.spmatrix,
                           shift: ShiftOptions, start: float = 0.0) -> list[FactorReport]:

@@ -13,7 +13,8 @@ with Newton's method warm-started from the previous frame). Iteration k:
 3. if the factorisation fails, reports negative pivots (A not SPD), the direction is not a
    descent direction (``g . dx >= 0``) or the line search fails, retry with ``A + tau I``,
    ``tau = tau_0 mean|diag A|`` growing x10 (Nocedal & Wright, Numerical Optimization,
-   2nd ed., Alg. 3.3); each iteration tries ``tau = 0`` first, then shifts starting from the last one / 10;
+   2nd ed., Alg. 3.3); each iteration tries ``tau = 0`` first, then shifts starting from the
+   previous iteration's shift / 10;
 4. backtracking line search: largest ``alpha = shrink^j`` with the Armijo condition
    ``W(x + alpha dx) <= W(x) + c1 alpha g . dx`` (plus a 16 eps |W| round-off allowance, so
    the final quadratically convergent steps are not rejected for noise in W).
@@ -221,6 +222,11 @@ class ShellSolveReport:
         return sum(1 for it in self.history if it.shift > 0)
 
     @property
+    def factorizations(self) -> int:
+        """Numeric factorisations over all iterations (shifted retries included)."""
+        return sum(it.factorizations for it in self.history)
+
+    @property
     def line_search_steps(self) -> int:
         """Total step reductions over all iterations."""
         return sum(it.line_search_steps for it in self.history)
@@ -229,6 +235,7 @@ class ShellSolveReport:
         """One line: converged flag, iterations, energy, gradient, shifts, timings."""
         return (f"converged={self.converged} ({self.reason}) it={self.iterations} "
                 f"W={self.energy:.12e} |g|={self.grad_norm:.3e} shifts={self.shifted_iterations} "
+                f"factorizations={self.factorizations} "
                 f"ls={self.line_search_steps} t_eval={self.time_evaluate:.3f}s "
                 f"t_fact={self.time_factorize:.3f}s t_solve={self.time_solve:.3f}s "
                 f"t_total={self.time_total:.3f}s")
@@ -256,6 +263,8 @@ class _Timers:
     evaluate: float = 0.0
     line_search: float = 0.0
     start: float = field(default_factory=time.perf_counter)
+    linear_start: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """(factorise, analysis, solve) totals of the long-lived linear solvers at the start."""
 
 
 @dataclass(frozen=True)
@@ -361,7 +370,7 @@ class ShellNewtonSolver:
         if x.size != 3 * self.energy.n_vertices:
             raise InputError(f"x0: expected {self.energy.n_vertices} vertices, got shape "
                              f"{np.shape(x0)}")
-        timers, history = _Timers(), list[NewtonIteration]()
+        timers, history = _Timers(linear_start=self.linear.times()), list[NewtonIteration]()
         opts = self.options
         ev = self._evaluate(x, timers, opts.far_hessian or opts.hessian)
         tol = self._tolerance(_grad_norm(ev))
@@ -449,7 +458,9 @@ class ShellNewtonSolver:
     def _report(self, converged: bool, reason: str, ev: EnergyEval, tol: float,
                 history: list[NewtonIteration], timers: _Timers) -> ShellSolveReport:
         """Freeze the run into a :class:`ShellSolveReport`."""
-        factorize, analysis, solve = self.linear.times()
+        factorize, analysis, solve = (now - before for now, before
+                                      in zip(self.linear.times(), timers.linear_start,
+                                             strict=True))
         return ShellSolveReport(
             converged=converged, reason=reason, iterations=len(history), energy=ev.value,
             grad_norm=_grad_norm(ev), tolerance=tol, history=tuple(history),

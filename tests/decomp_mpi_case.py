@@ -42,16 +42,16 @@ def _run(args: argparse.Namespace, comm: MPI.Comm) -> dict[str, float]:
                                                         compression=args.compression))
     energy = problem.energy()
     g0 = float(np.linalg.norm(energy.evaluate(x0, order=1).grad))
-    newton = ShellNewtonOptions(rtol=1e-8, gradient_scale=g0)
+    symmetric = "lu" if args.backend == "superlu_dist" else "cholesky"
+    newton = ShellNewtonOptions(rtol=1e-8, gradient_scale=g0, linear=LinearSolverOptions(
+        backend=args.backend, symmetric=symmetric))  # the serial reference uses the same solver
     x_ref, ref = minimize(energy, x0, newton)
     out: dict[str, float] = {"energy_ref": ref.energy}
     if args.mode == "distributed":
-        symmetric = "lu" if args.backend == "superlu_dist" else "cholesky"
-        opts = ShellNewtonOptions(rtol=1e-8, gradient_scale=g0, linear=LinearSolverOptions(
-            backend=args.backend, symmetric=symmetric))
-        x, rep = distributed_minimize(energy, x0, opts, comm)
+        x, rep = distributed_minimize(energy, x0, newton, comm)
         out |= {"iterations": rep.iterations, "iterations_ref": ref.iterations,
-                "converged": rep.converged}
+                "converged": rep.converged, "time_evaluate": rep.time_evaluate,
+                "time_factorize": rep.time_factorize, "time_total": rep.time_total}
     else:
         fail = int(os.environ.get("DECOMP_FAIL_PATCH", "-1"))
         block = BlockOptions(method=args.method, rtol=1e-8, gradient_scale=g0, fail_patch=fail)

@@ -16,7 +16,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT = REPO / "scenes" / "default.toml"
+DEFAULT = REPO / "scenes" / "drop_block.toml"  # the falling block (default.toml: wrinkles)
 G = 9.81
 
 
@@ -175,7 +175,7 @@ def test_bad_scene_exits_1_with_one_line(tmp_path, kind):
     (["run", str(DEFAULT), "--frames", "two"], r"^error: argument --frames: invalid int"),
     (["run", str(DEFAULT), "--frames", "0"], r"^error: --frames: time\.frames must be >= 1"),
     (["run", str(DEFAULT), "--set", "materal.E=1"],
-     r"^error: default\.toml: unknown key 'materal' \(did you mean 'material'\?\)$"),
+     r"^error: drop_block\.toml: unknown key 'materal' \(did you mean 'material'\?\)$"),
 ])
 def test_bad_usage_exits_1_with_one_line(args, pattern):
     proc = wrinkles(*args)

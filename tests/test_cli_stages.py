@@ -13,7 +13,7 @@ from wrinkles.runner import prepare, run_frames
 from wrinkles.scene import load_scene, scene_dict, scene_from_dict, with_frames
 
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT = REPO / "scenes" / "default.toml"
+DEFAULT = REPO / "scenes" / "drop_block.toml"  # the falling block (default.toml: wrinkles)
 
 
 def test_extra_stage_runs_after_the_body_and_lands_in_the_summary(tmp_path):
@@ -50,4 +50,4 @@ def test_check_refuses_bad_scene(capsys):
     assert cli.main(["check", str(DEFAULT), "--set", "material.nu=0.5"]) == 1
     captured = capsys.readouterr()
     assert captured.out == ""
-    assert captured.err.startswith("error: default.toml: material.nu must be < 0.5")
+    assert captured.err.startswith("error: drop_block.toml: material.nu must be < 0.5")

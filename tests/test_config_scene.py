@@ -16,7 +16,7 @@ from wrinkles.output import OutputOptions
 from wrinkles.scene import Scene, load_scene, scene_dict, scene_from_dict, with_frames
 
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT = REPO / "scenes" / "default.toml"
+DEFAULT = REPO / "scenes" / "drop_block.toml"  # the falling block (default.toml: wrinkles)
 
 BASE = """
 [mesh]
@@ -296,7 +296,8 @@ frames = 3
     assert data["body"]["contacts"][1]["stiffness"] == 1.0e6
     assert data["body"]["contacts"][0]["stiffness"] is None
     assert data["mesh"]["params"] == {"lx": 0.4, "ly": 0.4, "lz": 0.2, "h": 0.1}
-    assert set(data) == {"mesh", "title", "material", "body", "newton", "time", "output"}
+    assert set(data) == {"mesh", "title", "material", "body", "newton", "time", "output",
+                         "shell"}
 
 
 def test_default_scene_round_trips(tmp_path):

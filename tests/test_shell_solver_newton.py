@@ -89,6 +89,11 @@ def test_solver_reuses_analysis_across_frames() -> None:
     print(f"frame 1 {r1.iterations} it, frame 2 {r2.iterations} it, factorisations "
           f"{stats.factorizations}, symbolic analyses {analyses}")
     assert r1.converged and r2.converged and analyses == 1
+    assert stats.factorizations == r1.factorizations + r2.factorizations
+    # report times are per call, the solver's stats accumulate over both frames
+    total = stats.analysis_time + stats.numeric_time
+    assert r2.time_factorize < total and r2.time_analysis == 0.0
+    assert r1.time_factorize + r2.time_factorize == pytest.approx(total, rel=1e-9)
     assert r2.iterations < r1.iterations  # the warm start helps
 
 

@@ -7,12 +7,18 @@ MPI ranks (dolfinx numbers dofs per partition): on restart every rank looks its 
 in the stored coordinates (k-d tree) and copies their values. Rank 0 gathers and writes the
 file atomically (temporary file + ``os.replace``) after every frame, so a killed run restarts
 from its last completed frame.
+
+Other stages (the embedded shell, rigid bodies) keep their state in the same file as named
+arrays: ``BodyState.arrays[stage][name]`` (serial numpy arrays, gathered by the stage on rank
+0), stored under ``stages/<stage>/<name>``; :func:`with_arrays` adds a stage's arrays before
+the file is written. Layout: attributes ``frame``, ``time``, ``format``; datasets
+``coords``, ``fields/<name>``, ``stages/<stage>/<name>``.
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +31,8 @@ from models.body import Body
 from models.errors import InputError
 
 CHECKPOINT_NAME = "checkpoint.h5"
+FORMAT = 2
+"""Checkpoint layout version (1: no ``stages`` group; still read)."""
 MATCH_TOL = 1e-9
 """Largest node distance accepted when matching stored nodes, relative to the mesh size."""
 
@@ -38,6 +46,8 @@ class BodyState:
         time: physical time of the state [s].
         coords: (n, 3) reference coordinates of the dof nodes [m].
         fields: name -> (n, 3) nodal values (``displacement``, ``velocity``, ``acceleration``).
+        arrays: stage name -> array name -> array: the state of the other stages (e.g.
+            ``{"shell": {"positions": x}}``), restored verbatim.
 
     """
 
@@ -45,6 +55,21 @@ class BodyState:
     time: float
     coords: np.ndarray
     fields: dict[str, np.ndarray] = field(default_factory=dict)
+    arrays: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+
+
+def with_arrays(state: BodyState, stage: str, arrays: dict[str, np.ndarray]) -> BodyState:
+    """Return ``state`` with the named arrays of ``stage`` added (replacing earlier ones).
+
+    Raises:
+        InputError: an empty or ``/``-containing stage or array name.
+
+    """
+    for name in (stage, *arrays):
+        if not name or "/" in name:
+            raise InputError(f"checkpoint: invalid stage or array name {name!r}")
+    copied = {name: np.array(values, copy=True) for name, values in arrays.items()}
+    return replace(state, arrays={**state.arrays, stage: copied})
 
 
 def state_functions(body: Body) -> dict[str, Any]:
@@ -76,14 +101,25 @@ def gather_state(body: Body, frame: int) -> BodyState | None:
 
 
 def write_state(path: Path, state: BodyState) -> None:
-    """Write ``state`` to ``path`` atomically (rank 0 only)."""
+    """Write ``state`` to ``path`` atomically (rank 0 only): temporary file, fsync, rename."""
     tmp = path.with_name(f".{path.name}.tmp")
     with h5py.File(tmp, "w") as h5:
-        h5.attrs["frame"], h5.attrs["time"] = state.frame, state.time
+        h5.attrs["frame"], h5.attrs["time"], h5.attrs["format"] = state.frame, state.time, FORMAT
         h5["coords"] = state.coords
         for name, values in state.fields.items():
             h5[f"fields/{name}"] = values
+        for stage, arrays in state.arrays.items():
+            for name, values in arrays.items():
+                h5[f"stages/{stage}/{name}"] = values
+    with open(tmp, "rb+") as handle:
+        os.fsync(handle.fileno())
     os.replace(tmp, path)
+
+
+def _stage_arrays(h5: h5py.File) -> dict[str, dict[str, np.ndarray]]:
+    """Read the ``stages`` group (absent in format 1) as nested dicts."""
+    group = h5.get("stages", {})
+    return {stage: {name: group[stage][name][...] for name in group[stage]} for stage in group}
 
 
 def read_state(path: Path) -> BodyState:
@@ -94,7 +130,7 @@ def read_state(path: Path) -> BodyState:
         with h5py.File(path, "r") as h5:
             fields = {name: h5["fields"][name][...] for name in h5["fields"]}
             return BodyState(int(h5.attrs["frame"]), float(h5.attrs["time"]),
-                             h5["coords"][...], fields)
+                             h5["coords"][...], fields, _stage_arrays(h5))
     except (OSError, KeyError) as exc:
         raise InputError(f"{path}: unreadable checkpoint ({exc})") from None
 
@@ -113,6 +149,6 @@ def scatter_state(body: Body, state: BodyState) -> None:
     if worst > MATCH_TOL * scale or len(state.coords) != body.V.dofmap.index_map.size_global:
         raise InputError(f"{CHECKPOINT_NAME}: the checkpoint does not match the scene's mesh "
                          f"({len(state.coords)} stored nodes, node distance {worst:.3e} m)")
-    for name, f in state_functions(body).items():
-        f.x.array[:] = state.fields[name][index].reshape(-1)
-    body.t = state.time
+    values = {name: state.fields[name][index].reshape(-1) for name in state_functions(body)}
+    body.set_state(state.time, values["displacement"], values["velocity"],
+                   values["acceleration"])

@@ -1,12 +1,15 @@
 """Command-line interface of the ``wrinkles`` console script.
 
-``wrinkles run SCENE.toml [--out DIR] [--frames N] [--set key=value ...] [--restart]`` runs a
-scene (``--restart`` continues the run in ``DIR`` from its last completed frame);
+``wrinkles run SCENE.toml [--out DIR] [--frames N] [--set key=value ...] [--resume]`` runs a
+scene (``--resume`` continues the run in ``DIR`` from its last completed frame; ``--restart``
+is an alias kept for old scripts);
 ``wrinkles check SCENE.toml [--set key=value ...]`` validates it and prints it resolved (JSON).
 
 Exit codes: 0 ok; 1 bad input (``InputError``: one line ``error: <message>`` on stderr, no
 traceback; also bad command-line usage); 2 solver failure (``SolverError``: the frames done so
-far stay on disk) or an unexpected exception (a bug: its traceback is printed).
+far and the checkpoint stay on disk, ``summary.json`` gets ``run.diagnostic`` - worst det F
+cell, energy terms, parameters - which is also printed on stderr as one ``diagnostic:`` JSON
+line) or an unexpected exception (a bug: its traceback is printed).
 
 Under MPI every rank runs the same code. Errors raised on all ranks (scene validation, mesh
 errors broadcast from rank 0, solver failures, which are collective) end the run with the
@@ -28,7 +31,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from models.errors import InputError, WrinklesError
+from models.errors import InputError, SolverError, WrinklesError
+from wrinkles.render import add_parser as add_render_parser
+from wrinkles.render import command_render
 
 AGREE_SECONDS = 10.0
 """How long a failing rank waits for the other ranks to fail too before ``MPI_Abort``."""
@@ -52,10 +57,12 @@ def build_parser() -> ArgumentParser:
                      help="output directory (default: out/<scene name>)")
     run.add_argument("--frames", type=int, default=None, help="number of frames to run "
                      "(replaces time.frames / time.end_time)")
-    run.add_argument("--restart", action="store_true", help="continue the run in --out "
-                     "from its last completed frame (same scene; time, output, newton may change)")
+    run.add_argument("--resume", "--restart", dest="resume", action="store_true",
+                     help="continue the run in --out from its last completed frame (same "
+                     "scene; time, output, newton may change); --restart is an alias")
     add_scene_arguments(commands.add_parser(
         "check", help="validate a scene file and print the resolved scene as JSON"))
+    add_render_parser(commands)
     return parser
 
 
@@ -76,16 +83,46 @@ def one_line(message: str) -> str:
 def command_run(args: argparse.Namespace) -> int:
     """Load the scene, apply ``--frames`` and ``--set``, run it (collective)."""
     from models.backend import MPI
-    from wrinkles.runner import run_scene
+    from models.errors import SolverError
+    from wrinkles.runner import prepare, run_frames
     from wrinkles.scene import load_scene, with_frames
 
     scene = load_scene(args.scene, args.overrides)
     if args.frames is not None:
         scene = with_frames(scene, args.frames)
     out = args.out if args.out is not None else Path("out") / args.scene.stem
-    run_scene(scene, out, MPI.COMM_WORLD, log=lambda line: print(line, flush=True),
-              restart=args.restart)
+    run = prepare(scene, out, MPI.COMM_WORLD, restart=args.resume)
+    try:
+        run_frames(run, log=lambda line: print(line, flush=True))
+    except SolverError as exc:
+        raise SolverError(record_failure(run, exc)) from None
     return 0
+
+
+def record_failure(run: Any, exc: SolverError) -> str:
+    """Add the failure diagnostic to ``summary.json``; return the one-line stderr message.
+
+    Collective. The message is the solver's, followed by the short form of the diagnostic
+    (worst det F and its cell, dominant energy term, material and step parameters).
+    """
+    from wrinkles.output import failure_diagnostic
+    from wrinkles.runner import write_summary
+
+    diagnostic = failure_diagnostic(run.body, one_line(str(exc)))
+    run.facts["diagnostic"] = diagnostic
+    write_summary(run)
+    return f"{diagnostic['error']}; diagnostic: {short_diagnostic(diagnostic)}"
+
+
+def short_diagnostic(diagnostic: dict[str, Any]) -> str:
+    """One-line form of :func:`wrinkles.output.failure_diagnostic`'s record."""
+    worst, params = diagnostic["worst_det_f"], diagnostic["parameters"]
+    centroid = ", ".join(f"{c:.4g}" for c in worst["cell_centroid"])
+    energy = diagnostic["energies"][diagnostic["dominant_energy"]]
+    return (f"last good state t={diagnostic['time']:.6g}: smallest det F={worst['min_det_f']:.4g} "
+            f"in cell {worst['cell']} (quadrature point {worst['quadrature_point']}, "
+            f"centroid ({centroid}) m), dominant energy term {diagnostic['dominant_energy']}="
+            f"{energy:.4e} J, parameters " + ", ".join(f"{k}={v}" for k, v in params.items()))
 
 
 def command_check(args: argparse.Namespace) -> int:
@@ -99,7 +136,7 @@ def command_check(args: argparse.Namespace) -> int:
     return 0
 
 
-COMMANDS = {"run": command_run, "check": command_check}
+COMMANDS = {"run": command_run, "check": command_check, "render": command_render}
 """Sub-command name -> its function (``args -> exit code``)."""
 
 

@@ -3,12 +3,20 @@
 ``body.xdmf`` + ``body.h5`` are written through ``dolfinx.io.XDMFFile``: the mesh once, then the
 initial state (t = 0) and each output frame: the named fields ``displacement`` and ``velocity``
 (P2 fields interpolated to P1, the geometry degree, since XDMF stores nodal values) at the
-physical time. The file is opened in append mode and closed again for each frame, so the HDF5
-data of every completed frame is on disk if the run is killed (a kill *during* the few ms of a
-write can still leave the HDF5 file damaged: HDF5 has no journal). dolfinx writes one temporal
-collection per field; after each frame rank 0 rewrites the XML so that each time step is one
-grid carrying all fields (the layout ParaView and ``meshio.xdmf.TimeSeriesReader`` both read).
-The heavy data is not touched.
+physical time. dolfinx writes one temporal collection per field; rank 0 rewrites the XML so
+that each time step is one grid carrying all fields (the layout ParaView and
+``meshio.xdmf.TimeSeriesReader`` both read).
+
+Kill safety (``OutputOptions.atomic``, default on). HDF5 has no journal and dolfinx rewrites
+the XML in place, so a process killed *during* a write could leave either file damaged and
+lose every frame. Each frame is therefore written as a transaction: rank 0 copies
+``body.h5`` and ``body.xdmf`` into ``.work/``, all ranks append the frame there, then rank 0
+``os.replace``-s the new ``.work/body.h5`` over ``body.h5`` and writes the merged XML through
+a temporary file + ``os.replace``. Both renames are atomic, and the XML is replaced after the
+HDF5 file, so at any instant ``body.xdmf`` is complete and references only datasets present
+in ``body.h5``: a run killed at any moment keeps every completed frame readable. The price is
+one copy of ``body.h5`` per output frame; ``atomic = false`` appends in place instead.
+:func:`complete_steps` lists the steps whose data is actually readable.
 
 ``summary.json`` holds the resolved scene, package versions and one record per frame (time,
 Newton iterations, energy, min det F, wall times); rank 0 rewrites it atomically (temporary
@@ -18,8 +26,10 @@ file + ``os.replace``) after every frame.
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
+import shutil
 import sys
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping, Sequence
@@ -31,7 +41,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from models.backend import MPI, PETSc, dolfinx
+from models.backend import MPI, PETSc, dolfinx, quadrature_expression, ufl
 from models.errors import InputError
 from wrinkles.collective import on_root
 
@@ -41,6 +51,8 @@ FIELDS: tuple[str, ...] = ("displacement", "velocity")
 PACKAGES: tuple[str, ...] = ("dolfinx-solver-real", "numpy", "scipy", "mpi4py", "meshio",
                              "gmsh", "h5py", "numba", "scikit-fem")
 XI = "{https://www.w3.org/2001/XInclude}"
+WORK_DIR = ".work"
+"""Sub-directory of the output directory where a frame is written before it is committed."""
 
 
 @dataclass(frozen=True)
@@ -51,8 +63,11 @@ class OutputOptions:
         xdmf: write the body time series ``body.xdmf`` + ``body.h5``.
         every: write the XDMF fields every N-th frame (the last frame is always written); >= 1.
         summary: write ``summary.json`` (resolved scene, versions, per-frame records).
-        checkpoint: write ``checkpoint.h5`` (body state of the last completed frame) so that
-            ``wrinkles run --restart`` can continue the run.
+        checkpoint: write ``checkpoint.h5`` (state of the last completed frame) so that
+            ``wrinkles run --resume`` can continue the run.
+        atomic: write each XDMF frame as a transaction (copy, append, atomic rename; module
+            doc) so that a kill during a write cannot damage the frames already on disk;
+            ``false`` appends in place (no copy, but a kill mid-write can corrupt the file).
 
     """
 
@@ -60,6 +75,7 @@ class OutputOptions:
     every: int = 1
     summary: bool = True
     checkpoint: bool = True
+    atomic: bool = True
 
     def __post_init__(self) -> None:
         if self.every < 1:
@@ -85,8 +101,8 @@ class XdmfSeries:
     """An XDMF/HDF5 time series of named vector fields on one mesh (collective calls).
 
     The mesh is written once at construction; :meth:`write` appends one time step, with
-    each field interpolated into P1 (exact for P1, nodal values for P2), closes the file so
-    the HDF5 data is on disk, and merges the XML into one grid per time step.
+    each field interpolated into P1 (exact for P1, nodal values for P2), and commits it
+    (module doc: with ``atomic`` the frame appears in ``path`` all at once or not at all).
 
     Args:
         path: the ``.xdmf`` file (the ``.h5`` file goes beside it).
@@ -94,33 +110,69 @@ class XdmfSeries:
         resume_after: ``None`` to start a new file; for a restart, the time [s] of the
             restored state: the existing file is kept and its steps after that time are
             removed (XML and HDF5 data), so the rerun frames replace them.
+        atomic: write through ``.work/`` and atomic renames (see ``OutputOptions.atomic``).
 
     """
 
     def __init__(self, path: Path, fields: Mapping[str, dolfinx.fem.Function],
-                 resume_after: float | None = None) -> None:
-        self.path = path
+                 resume_after: float | None = None, atomic: bool = True) -> None:
+        self.path, self.atomic = path, atomic
+        self.work = path.parent / WORK_DIR / path.name
         self.fields = dict(fields)
         self._nodal = {name: p1_function(u, name) for name, u in self.fields.items()}
         mesh = next(iter(self.fields.values())).function_space.mesh
         self.comm = mesh.comm
+        on_root(self.comm, lambda: self.work.parent.mkdir(parents=True, exist_ok=True))
         if resume_after is None:
-            with dolfinx.io.XDMFFile(self.comm, str(path), "w") as xdmf:
+            with dolfinx.io.XDMFFile(self.comm, str(self.target), "w") as xdmf:
                 xdmf.write_mesh(mesh)
+            on_root(self.comm, self._commit)
         else:
             geometry = written_geometry(mesh)
             on_root(self.comm, lambda: resume_file(path, geometry, resume_after))
 
+    @property
+    def target(self) -> Path:
+        """The XDMF file dolfinx writes to: the work copy when atomic, else ``path``."""
+        return self.work if self.atomic else self.path
+
     def write(self, t: float) -> None:
-        """Append the current values of the fields at physical time ``t`` [s]."""
+        """Append the current values of the fields at physical time ``t`` [s] and commit."""
         for name, u in self.fields.items():
             self._nodal[name].interpolate(u)
-        with dolfinx.io.XDMFFile(self.comm, str(self.path), "a") as xdmf:
+        if self.atomic:
+            on_root(self.comm, lambda: copy_series(self.path, self.work))
+        with dolfinx.io.XDMFFile(self.comm, str(self.target), "a") as xdmf:
             for u1 in self._nodal.values():
                 xdmf.write_function(u1, t)
-        if self.comm.rank == 0:
-            merge_time_collections(self.path)
-        self.comm.barrier()
+        on_root(self.comm, self._commit)
+
+    def _commit(self) -> None:
+        """Make the written frame visible in ``path`` (rank 0): HDF5 first, then the XML."""
+        if self.atomic:
+            os.replace(self.work.with_suffix(".h5"), self.path.with_suffix(".h5"))
+        merge_time_collections(self.target, self.path)
+
+
+def copy_series(src: Path, dst: Path) -> None:
+    """Copy an XDMF file and its HDF5 file (the work copy a frame is appended to)."""
+    shutil.copyfile(src.with_suffix(".h5"), dst.with_suffix(".h5"))
+    shutil.copyfile(src, dst)
+
+
+def write_xml_atomic(tree: ET.ElementTree[ET.Element[str]], path: Path) -> None:
+    """Write an XDMF tree to ``path`` through a temporary file and ``os.replace``.
+
+    The ``xi`` namespace stays declared on the root even when no ``xi:include`` is left
+    (ElementTree drops unused declarations; dolfinx appends ``xi:include`` without one).
+    """
+    ET.indent(tree, "  ")
+    text = ET.tostring(tree.getroot(), encoding="unicode")
+    if "xmlns:xi=" not in text.split(">", 1)[0]:
+        text = text.replace("<Xdmf", f'<Xdmf xmlns:xi="{XI[1:-1]}"', 1)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text("<?xml version='1.0' encoding='utf-8'?>\n" + text + "\n", encoding="utf-8")
+    os.replace(tmp, path)
 
 
 def _step_key(grid: ET.Element) -> str:
@@ -129,12 +181,13 @@ def _step_key(grid: ET.Element) -> str:
     return time.get("Value", "0") if time is not None else "0"
 
 
-def merge_time_collections(path: Path) -> None:
+def merge_time_collections(path: Path, dest: Path | None = None) -> None:
     """Rewrite an XDMF file so all temporal collections become one, one grid per time.
 
     dolfinx writes each field as its own ``Collection``; the merged layout puts every field's
     ``Attribute`` of a given time into one ``Uniform`` grid, which ``meshio`` reads as point
-    data of one step. Idempotent: merging a merged file changes nothing.
+    data of one step. Idempotent: merging a merged file changes nothing. The result goes to
+    ``dest`` (default ``path``) atomically.
     """
     tree = ET.parse(path)
     domain = tree.getroot().find("Domain")
@@ -149,10 +202,7 @@ def merge_time_collections(path: Path) -> None:
     merged = ET.SubElement(domain, "Grid", Name="fields", GridType="Collection",
                            CollectionType="Temporal")
     merged.extend(sorted(steps.values(), key=lambda g: float(_step_key(g))))
-    ET.indent(tree, "  ")
-    tmp = path.with_suffix(".xdmf.tmp")
-    tree.write(tmp, xml_declaration=True, encoding="utf-8")
-    os.replace(tmp, path)
+    write_xml_atomic(tree, dest or path)
 
 
 def _merge_step(steps: dict[str, ET.Element], grid: ET.Element) -> None:
@@ -203,22 +253,55 @@ def resume_file(path: Path, geometry: np.ndarray | None, t: float) -> None:
 
 
 def drop_steps_after(path: Path, t: float) -> None:
-    """Remove the steps later than ``t`` [s] from an XDMF file and their HDF5 data."""
+    """Remove the steps later than ``t`` [s] from an XDMF file and their HDF5 data.
+
+    The XML without those steps is committed first, then an HDF5 copy without their datasets
+    replaces ``body.h5``, so a kill in between leaves a consistent series.
+    """
     merge_time_collections(path)
     tree = ET.parse(path)
     late = [(c, g) for c in tree.getroot().iter("Grid") for g in c.findall("Grid")
             if float(_step_key(g)) > t + 1e-12 * max(1.0, abs(t))]
-    datasets = [item.text.split(":", 1)[1] for _, g in late
-                for item in g.iter("DataItem") if item.text and ":" in item.text]
-    with h5py.File(path.with_suffix(".h5"), "a") as h5:
-        for name in datasets:
-            if name.strip() in h5:
-                del h5[name.strip()]
+    datasets = [name for _, g in late for name in _datasets(g)]
     for collection, grid in late:
         collection.remove(grid)
-    tmp = path.with_suffix(".xdmf.tmp")
-    tree.write(tmp, xml_declaration=True, encoding="utf-8")
-    os.replace(tmp, path)
+    write_xml_atomic(tree, path)
+    h5_path = path.with_suffix(".h5")
+    tmp = h5_path.with_name(f".{h5_path.name}.tmp")
+    shutil.copyfile(h5_path, tmp)
+    with h5py.File(tmp, "a") as h5:
+        for name in datasets:
+            if name in h5:
+                del h5[name]
+    os.replace(tmp, h5_path)
+
+
+def _datasets(grid: ET.Element) -> list[str]:
+    """HDF5 dataset paths referenced by the ``DataItem`` s of a grid (``file.h5:/path``)."""
+    return [item.text.split(":", 1)[1].strip() for item in grid.iter("DataItem")
+            if item.text and ":" in item.text]
+
+
+def complete_steps(path: Path) -> list[float]:
+    """Return the times of the steps whose HDF5 datasets are all readable.
+
+    A reader's fallback after a crash: a step whose data is missing or unreadable (or an
+    unreadable file altogether) is left out instead of failing the whole series.
+    """
+    try:
+        grids = [g for c in ET.parse(path).getroot().iter("Grid") for g in c.findall("Grid")]
+        with h5py.File(path.with_suffix(".h5"), "r") as h5:
+            return [float(_step_key(g)) for g in grids if _readable(h5, _datasets(g))]
+    except (OSError, ET.ParseError):
+        return []
+
+
+def _readable(h5: h5py.File, names: list[str]) -> bool:
+    """Whether every dataset in ``names`` exists and reads as finite numbers."""
+    try:
+        return all(name in h5 and bool(np.all(np.isfinite(h5[name][...]))) for name in names)
+    except (OSError, KeyError, TypeError):
+        return False
 
 
 ET.register_namespace("xi", XI[1:-1])
@@ -254,3 +337,50 @@ def summary_document(scene: Mapping[str, Any], run: Mapping[str, Any],
     """Assemble the summary: scene, versions, run facts and frame records (JSON-able)."""
     return {"scene": dict(scene), "versions": package_versions(), "run": dict(run),
             "frames": [dict(f) for f in frames]}
+
+
+# --------------------------------------------------------------------------------------------
+# Divergence diagnostic
+
+
+def worst_cell(body: Any) -> dict[str, Any]:
+    """Locate the smallest ``det F`` over the body's volume quadrature points (collective).
+
+    ``det F = det(I + grad u)`` is evaluated at the degree-``qdegree`` points of every owned
+    cell; the global minimum, its cell (global index), quadrature point and the cell's
+    reference centroid are returned on every rank.
+    """
+    mesh = body.mesh
+    expr = quadrature_expression(ufl.det(body.deformation_gradient()), mesh,
+                                 body.options.qdegree)
+    imap = mesh.topology.index_map(mesh.topology.dim)
+    values = expr.eval(mesh, np.arange(imap.size_local, dtype=np.int32))
+    values = np.where(np.isfinite(values), values, -np.inf).reshape(imap.size_local, -1)
+    local = (np.inf, -1, -1, [math.nan] * 3)
+    if values.size:
+        cell, point = np.unravel_index(int(np.argmin(values)), values.shape)
+        centroid = mesh.geometry.x[mesh.geometry.dofmaps[0][cell]].mean(axis=0)
+        local = (float(values[cell, point]), int(imap.local_to_global(np.array([cell]))[0]),
+                 int(point), [float(c) for c in centroid])
+    best = min(mesh.comm.allgather(local), key=lambda item: item[0])
+    return {"min_det_f": best[0], "cell": best[1], "quadrature_point": best[2],
+            "cell_centroid": best[3]}
+
+
+def failure_diagnostic(body: Any, error: str) -> dict[str, Any]:
+    """Collect what a user needs after a failed solve (collective).
+
+    The body is in its last good state (``Body.step`` restores it on failure): its worst
+    ``det F`` location, its energy terms with the dominant one, and the parameters of the
+    material, the time integration and the Newton solver; ``error`` is the solver's message.
+    """
+    energies = body.energies()
+    terms = {k: v for k, v in energies.items() if k != "total"}
+    material = body.material
+    return {"error": error, "time": body.t, "worst_det_f": worst_cell(body),
+            "energies": energies, "dominant_energy": max(terms, key=lambda k: abs(terms[k])),
+            "parameters": {"model": material.model, "E": material.E, "nu": material.nu,
+                           "density": material.density, "dt": body.options.dt,
+                           "dynamics": body.options.dynamics, "degree": body.options.degree,
+                           "newton_max_it": body.newton.max_it,
+                           "max_halvings": body.newton.max_halvings}}

@@ -10,6 +10,12 @@ after it without touching the loop::
     run.stages.append(("shell", shell_stage))  # e.g. target y = B (X_q + u_q), minimise W
     run_frames(run, log)
 
+A scene with a ``[shell]`` table gets the embedded-shell stage of :mod:`wrinkles.shell_stage`
+this way (``shell.xdmf`` beside ``body.xdmf``); with ``shell.coupling.mode = "two_way"`` the body
+is a :class:`models.coupling.CoupledBody` and one coupled stage replaces body and shell stages
+(fixed point of body step and shell solve per frame). ``shell.render`` renders the shell
+(:mod:`wrinkles.render`) when the run completes.
+
 After every frame the summary and a checkpoint of the body state (:mod:`wrinkles.checkpoint`)
 are written; ``prepare(..., restart=True)`` continues a run from its last completed frame:
 state, frame records and XDMF series are taken over, later output is dropped and recomputed.
@@ -36,6 +42,7 @@ import meshes
 from meshes.tetmesh import TetMesh
 from models.backend import MPI, dolfinx, mesh_from_arrays
 from models.body import Body, StepReport
+from models.coupling import CoupledBody
 from models.errors import InputError, SolverError
 from wrinkles.checkpoint import (
     CHECKPOINT_NAME,
@@ -53,6 +60,13 @@ from wrinkles.output import (
     write_json_atomic,
 )
 from wrinkles.scene import Scene, SceneMesh, mesh_builder, scene_dict
+from wrinkles.shell_stage import (
+    Shell,
+    build_shell,
+    make_writer,
+    one_way_stage,
+    two_way_stage,
+)
 
 SUMMED: tuple[str, ...] = ("newton_iterations", "halvings", "substeps")
 """``StepReport`` counts that add up over the steps of a frame."""
@@ -159,6 +173,7 @@ class Run:
         series: the body's XDMF time series (``None`` when ``output.xdmf`` is off).
         records: one record per completed frame.
         facts: run facts for the summary (ranks, sizes, status, start time).
+        shell: the embedded shell (``None`` without a ``[shell]`` table).
 
     """
 
@@ -169,6 +184,7 @@ class Run:
     series: XdmfSeries | None = None
     records: list[FrameRecord] = field(default_factory=list)
     facts: dict[str, Any] = field(default_factory=dict)
+    shell: Shell | None = None
 
     @property
     def comm(self) -> MPI.Comm:
@@ -187,9 +203,12 @@ def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False) -> R
     With ``restart`` the body state, the frame records and the XDMF series are taken over
     from the run in ``out`` (its last completed frame); otherwise a new run starts at t = 0.
     """
+    if restart and scene.shell is not None:
+        raise InputError("--restart: scenes with a [shell] table cannot be restarted yet (the "
+                         "shell state is not checkpointed); rerun from the start")
     on_root(comm, lambda: make_output_dir(out))
     mesh = distributed_mesh(scene.mesh, comm)
-    body = Body(mesh, scene.material, scene.body, scene.newton)
+    body = make_body(scene, mesh)
     stages: list[tuple[str, Stage]] = [("body", body_stage(body, scene.time.steps_per_frame))]
     run = Run(scene, out, body, stages)
     run.facts = {"ranks": comm.size, "status": "running", "frames_planned": run.n_frames,
@@ -199,7 +218,33 @@ def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False) -> R
         resume(run)
     else:
         start(run)
+    if scene.shell is not None:
+        attach_shell(run)
     return run
+
+
+def make_body(scene: Scene, mesh: dolfinx.mesh.Mesh) -> Body:
+    """Make the scene's body: a :class:`CoupledBody` (nodal load hook) for two-way coupling."""
+    two_way = scene.shell is not None and scene.shell.coupling.mode == "two_way"
+    cls = CoupledBody if two_way else Body
+    return cls(mesh, scene.material, scene.body, scene.newton)
+
+
+def attach_shell(run: Run) -> None:
+    """Build the shell, write its rest state, and add its stage(s) (collective)."""
+    options = run.scene.shell
+    assert options is not None  # only called for scenes with a [shell] table
+    shell = build_shell(run.body, options, run.scene.material)
+    every, last = run.scene.output.every, run.n_frames
+    write = make_writer(shell, run.out, run.comm, lambda f: f % every == 0 or f == last)
+    if isinstance(run.body, CoupledBody):
+        steps = run.scene.time.steps_per_frame
+        body = body_stage(run.body, steps)
+        run.stages = [("body+shell", two_way_stage(shell, run.body, steps, body, write))]
+    else:
+        run.stages.append(("shell", one_way_stage(shell, run.body, write)))
+    run.shell = shell
+    run.facts["shell"] = shell.facts
 
 
 def start(run: Run) -> None:
@@ -357,7 +402,18 @@ def run_frames(run: Run, log: Callable[[str], None] = print) -> Run:
             log(record.progress_line(run.n_frames))
     run.facts["status"] = "completed"
     write_summary(run)
+    render_if_asked(run, log)
     return run
+
+
+def render_if_asked(run: Run, log: Callable[[str], None]) -> None:
+    """Render the shell series (PNG frames, ``shell.png``, ``shell.gif``) on rank 0."""
+    if run.scene.shell is None or not run.scene.shell.render or run.comm.rank != 0:
+        return
+    from wrinkles.render import RenderOptions, render_run
+
+    written = render_run(run.out, RenderOptions())
+    log(f"rendered {len(written)} files into {run.out}")
 
 
 def run_scene(scene: Scene, out: Path, comm: MPI.Comm, log: Callable[[str], None] = print,

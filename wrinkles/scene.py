@@ -9,6 +9,7 @@ dataclass of the code that uses it::
     [newton]    NewtonOptions  -- tolerances of the body's Newton solver
     [time]      TimeOptions    -- number of frames (or end time), body steps per frame
     [output]    OutputOptions  -- which files, every N frames
+    [shell]     ShellOptions   -- the embedded shell (absent = body only), wrinkles/shell_stage.py
 
 Tables that are absent keep their defaults; optional physics is off unless the scene asks for
 it: no ``[[body.contacts]]`` means no obstacle, no ``[[body.pins]]`` no pins, and
@@ -31,6 +32,7 @@ from models.materials import Material
 from solvers.body_newton import NewtonOptions
 from wrinkles.config import Source, build, call_kwargs, load, to_dict
 from wrinkles.output import OutputOptions
+from wrinkles.shell_stage import ShellOptions
 
 BUILDERS: tuple[str, ...] = ("box", "cylinder", "sphere", "sofa")
 """Names of the gmsh mesh builders a scene may use (functions of the ``meshes`` package)."""
@@ -113,6 +115,8 @@ class Scene:
         newton: the body's Newton solver.
         time: frame count (or end time) and body steps per frame.
         output: output files and their frequency.
+        shell: the embedded shell and its coupling; ``None`` (no ``[shell]`` table) runs the
+            body only.
 
     """
 
@@ -123,6 +127,7 @@ class Scene:
     newton: NewtonOptions = field(default_factory=NewtonOptions)
     time: TimeOptions = field(default_factory=TimeOptions)
     output: OutputOptions = field(default_factory=OutputOptions)
+    shell: ShellOptions | None = None
 
 
 # --------------------------------------------------------------------------------------------

@@ -5,5 +5,6 @@ merging down to the number of workers), :mod:`.patch_energy` (the global energy 
 to one patch's owned vertices, everything else held fixed), :mod:`.block` (block Jacobi /
 Gauss-Seidel outer iteration with a pluggable exchange), :mod:`.parallel` (the MPI
 exchanges: client-server and neighbour-to-neighbour), :mod:`.distributed` (the monolithic
-Newton step with a distributed PETSc MPIAIJ Hessian and MUMPS / SuperLU_dist).
+Newton step with a distributed PETSc MPIAIJ Hessian and MUMPS / SuperLU_dist), :mod:`.demo`
+(the compressed-plate wrinkling problem of the tests and benchmark).
 """

@@ -208,7 +208,10 @@ class BlockSolver:
         self.colours, self.n_colours = np.asarray(colours), int(n_colours)
         self.exchange, self.options = exchange, options
         self.n_total = 0
-        self._solvers = [ShellNewtonSolver(p, options.inner) for p in self.patches]
+        # PatchEnergy has the ShellEnergy interface (mypy's protocol check of the keyword
+        # ``hessian`` fails for ShellEnergy itself too)
+        self._solvers = [ShellNewtonSolver(p, options.inner)  # type: ignore[arg-type]
+                         for p in self.patches]
 
     def _global_gradient(self, x: np.ndarray, tally: _Tally) -> float:
         """``||grad W(x)||`` summed over all workers' patches (errors agreed on)."""
@@ -257,7 +260,7 @@ class BlockSolver:
         tally.exchange += time.perf_counter() - start
 
     def _owned(self, x: np.ndarray) -> np.ndarray:
-        """This worker's owned values, flat, in patch order."""
+        """Return this worker's owned values, flat, in patch order."""
         if not self.patches:
             return np.zeros(0)
         return np.concatenate([x[p.interior].reshape(-1) for p in self.patches])
@@ -325,9 +328,12 @@ class BlockSolver:
         return g_mixed
 
     def solve(self, x0: np.ndarray) -> tuple[np.ndarray, BlockReport]:
-        """Run the outer iteration from x0 (n, 3); return ``(x, report)`` (x on this worker:
-        owned and halo values up to date; the caller gathers if needed)."""
-        x, tally, history = np.array(x0, dtype=np.float64), _Tally(), []
+        """Run the outer iteration from x0 (n, 3); return ``(x, report)``.
+
+        x is this worker's copy: owned and halo values up to date (the caller gathers).
+        """
+        x, tally = np.array(x0, dtype=np.float64), _Tally()
+        history: list[float] = []
         g = self._global_gradient(x, tally)
         tol = self.options.atol + self.options.rtol * (self.options.gradient_scale or g)
         n_patches = float(self.exchange.agree(np.array([len(self.patches)], float), None)[0])

@@ -57,6 +57,8 @@ class DistributedLinearSystem:
                              f"'mumps' or 'superlu_dist', got {options.backend!r}")
         self.comm, self.options = comm, options
         self.mat: Any = None
+        self.rhs: Any = None
+        self.sol: Any = None
         self._times = [0.0, 0.0, 0.0]  # factorise, analysis, solve
 
     def _setup(self, hess: sp.csr_matrix) -> None:
@@ -70,7 +72,7 @@ class DistributedLinearSystem:
         cols = hess.indices[self._slice]
         self._diag = np.flatnonzero(rows == cols)
         n = hess.shape[0]
-        mat = PETSc.Mat().create(comm=self.comm)
+        mat: Any = PETSc.Mat().create(comm=self.comm)
         mat.setSizes(((r1 - r0, n), (r1 - r0, n)))
         mat.setType(PETSc.Mat.Type.AIJ)
         mat.setPreallocationCOO(rows.astype(PETSc.IntType), cols.astype(PETSc.IntType))
@@ -78,7 +80,8 @@ class DistributedLinearSystem:
         mat.setOption(PETSc.Mat.Option.SPD, self.options.symmetric == "cholesky")
         self.mat = mat
         self.ksp = self._create_ksp()
-        self.rhs, self.sol = mat.createVecs()
+        vecs: Any = mat.createVecs()
+        self.rhs, self.sol = vecs
 
     def _create_ksp(self) -> Any:
         """KSPPREONLY with PCFactor of the chosen backend."""

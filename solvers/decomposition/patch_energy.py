@@ -54,7 +54,7 @@ class ShellProblem:
     target: np.ndarray
 
     def energy(self) -> ShellEnergy:
-        """The global (monolithic) energy with the target set."""
+        """Build the global (monolithic) energy with the target set."""
         energy = ShellEnergy(self.topology, self.rest, self.params, H=self.H)
         energy.set_target(self.target)
         return energy
@@ -101,6 +101,7 @@ def slice_rest(problem: ShellProblem, local: np.ndarray, faces: np.ndarray,
     Hinge angles need no sign fix: a local hinge ``[j, i, l, k]`` (renumbering swapped the
     edge's vertex order) has the same signed angle as ``[i, j, k, l]``, since the two face
     normals and the edge direction all swap together.
+
     """
     g, r, n = problem.topology, problem.rest, problem.topology.n_vertices
     ge = _edge_index(g.edges, n, local[topo.edges[:, 0]], local[topo.edges[:, 1]])
@@ -165,9 +166,11 @@ class PatchEnergy:
         return np.isin(self.local[stencils].min(axis=1), self.interior)
 
     def _owned_stencils(self, h_rows: sp.csr_matrix | None) -> dict[str, np.ndarray]:
-        """Masks of the stencils assigned to this patch (each global stencil to exactly one
-        patch: the owner of its smallest global vertex; a penalty row likewise by its
-        support)."""
+        """Mask the stencils assigned to this patch.
+
+        Each global stencil goes to exactly one patch: the owner of its smallest global
+        vertex (a penalty row: of its smallest support vertex).
+        """
         topo = self.energy.topology
         out = {"edges": self._is_owned(topo.edges), "faces": self._is_owned(topo.faces),
                "hinges": self._is_owned(topo.hinges)}
@@ -195,7 +198,7 @@ class PatchEnergy:
             h = m["hinges"]
             total += hinge_bending(x, e.topology.hinges[h], r.rest_angles[h],
                                    p.k_B * r.hinge_weights[h], order=0).value
-        if "rows" in m and m["rows"].any():
+        if self._h_local is not None and m["rows"].any():
             op = PenaltyOperator.from_matrix(self._h_local[m["rows"]], self.local.size)
             total += penalty_term(x, e.target, op, order=0, stiffness=p.k_P).value
         return float(total)
@@ -215,7 +218,7 @@ class PatchEnergy:
         self._x[:] = x[self.local]
 
     def owned_values(self) -> np.ndarray:
-        """Current owned positions (|I|, 3) (a copy)."""
+        """Return the current owned positions (|I|, 3) (a copy)."""
         return self._x[: self.n_vertices].copy()
 
     def _full(self, x_free: np.ndarray) -> np.ndarray:

@@ -1,8 +1,8 @@
-"""Patches of a shell from disjoint vertex sets (section 5 of the draft, MISSION.md section 7).
+r"""Patches of a shell from disjoint vertex sets (section 5 of the draft, MISSION.md section 7).
 
 The cluster partition (``Clusters.partition``, each vertex to its nearest centre) gives
 disjoint vertex sets ``V_i^*``. Patch ``i`` is the union of the one-ring faces of ``V_i^*``;
-its vertex set ``V_i`` adds the *boundary* vertices ``dV_i = V_i \\ V_i^*`` and its edge set is
+its vertex set ``V_i`` adds the *boundary* vertices ``dV_i = V_i \ V_i^*`` and its edge set is
 the induced one. The draft asks for four conditions on the subgraphs ``G_i = (V_i, E_i)`` of
 the edge graph ``G = (V, E)``:
 
@@ -51,7 +51,7 @@ class Patch:
 
     @property
     def boundary(self) -> np.ndarray:
-        """Boundary vertices ``dV_i = V_i \\ V_i^*`` (sorted)."""
+        r"""Boundary vertices ``dV_i = V_i \ V_i^*`` (sorted)."""
         return np.setdiff1d(self.vertices, self.interior, assume_unique=True)
 
 
@@ -88,7 +88,7 @@ def relabel(partition: np.ndarray, n_vertices: int) -> np.ndarray:
 
 
 def _group_adjacency(edges: np.ndarray, labels: np.ndarray) -> dict[tuple[int, int], int]:
-    """Number of mesh edges between each pair (a < b) of groups."""
+    """Count the mesh edges between each pair (a < b) of groups."""
     a, b = labels[edges[:, 0]], labels[edges[:, 1]]
     cross = a != b
     lo, hi = np.minimum(a[cross], b[cross]), np.maximum(a[cross], b[cross])
@@ -98,8 +98,10 @@ def _group_adjacency(edges: np.ndarray, labels: np.ndarray) -> dict[tuple[int, i
 
 def _merge_target(group: int, sizes: dict[int, int],
                   adjacency: dict[tuple[int, int], int]) -> int:
-    """Adjacent group of smallest size (ties: longest shared boundary) or, if isolated, the
-    smallest other group."""
+    """Pick the merge partner: the adjacent group of smallest size.
+
+    Ties go to the longest shared boundary; an isolated group takes the smallest other one.
+    """
     shared = {(b if a == group else a): w for (a, b), w in adjacency.items() if group in (a, b)}
     if shared:
         return min(shared, key=lambda g: (sizes[g], -shared[g], g))

@@ -1,0 +1,59 @@
+"""Decomposed and distributed solves on 2 MPI ranks (tests/decomp_mpi_case.py)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+SCRIPT = "tests/decomp_mpi_case.py"
+TIMEOUT = 120
+
+
+def _result(proc) -> dict:
+    assert proc.returncode == 0, f"rc={proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+    line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT "))
+    return json.loads(line[len("RESULT "):])
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize(("exchange", "method", "extra"), [
+    ("neighbour", "gauss_seidel", []),
+    ("client_server", "gauss_seidel", []),
+    ("neighbour", "jacobi", ["--patches-per-rank", "2"]),
+    ("client_server", "jacobi", ["--compression", "0.005"]),
+])
+def test_two_rank_block_solve_matches_monolithic(mpiexec, exchange, method, extra) -> None:
+    proc = mpiexec([SCRIPT, "--exchange", exchange, "--method", method, *extra], n=2,
+                   timeout=TIMEOUT)
+    out = _result(proc)
+    print(exchange, method, extra, out)
+    assert out["converged"]
+    assert out["energy_rel"] < 1e-8
+    assert out["max_diff"] < 1e-6  # plate width 1
+    assert out["rank_spread"] == 0.0  # every rank holds the same final state
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("backend", ["mumps", "superlu_dist"])
+def test_distributed_monolithic_equals_serial(mpiexec, backend) -> None:
+    out = _result(mpiexec([SCRIPT, "--mode", "distributed", "--backend", backend], n=2,
+                          timeout=TIMEOUT))
+    print(backend, out)
+    assert out["converged"]
+    assert out["energy_rel"] < 1e-12
+    assert out["max_diff"] < 1e-8
+    assert out["rank_spread"] == 0.0
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize(("exchange", "patch"), [("neighbour", 1), ("client_server", 0)])
+def test_failing_patch_stops_all_ranks(mpiexec, exchange, patch, monkeypatch) -> None:
+    monkeypatch.setenv("DECOMP_FAIL_PATCH", str(patch))
+    proc = mpiexec([SCRIPT, "--exchange", exchange], n=2, timeout=TIMEOUT)
+    print(proc.returncode, proc.stderr)
+    assert proc.returncode == 2
+    assert "RESULT" not in proc.stdout
+    for rank in (0, 1):
+        assert f"rank {rank}: decomposed solve stopped: rank {patch}: patch solve failed on " \
+               f"patch {patch}: SolverError: forced failure" in proc.stderr

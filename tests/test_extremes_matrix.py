@@ -1,0 +1,418 @@
+"""Stability at the extremes: a matrix of body and shell cases pushed to their limits.
+
+Every case asserts convergence, finite results, an energy that never increases over the
+Newton iterations (beyond the round-off band of the energy line search) and bounded
+iteration counts - or a clean ``InputError`` refusal where the input is unusable. Each case
+records its iteration counts and which fallbacks fired (body: step halvings, line-search
+backtracks, reversed indefinite directions; shell: diagonal Hessian shifts, line-search
+reductions) in ``benchmarks/results/extremes.json``; the table is printed at the end of the
+module (run with ``-s``).
+
+Body (``models.body.Body`` on a 3x3x3 structured 0.1 m cube, P1 unless noted):
+  * ``nu`` 0 .. 0.499: 30 % static compression in 3 load steps (top face pushed, bottom
+    clamped);
+  * compression to 50 % in 5 load steps (P1 and P2) and in one step (needs step halving);
+  * time steps 1e-5 .. 0.1 s: implicit Euler / Newmark block dropped onto the ground;
+  * a sphere obstacle driven into the block at 10 m/s (``Body.set_sphere_center``);
+  * near-degenerate tets (``V / l^3 = 1e-6``) compressed; flatter ones refused.
+Shell (``models.shell.ShellEnergy`` + ``ShellNewtonSolver``, the boundary surface of a
+coarse 2x2x1 box subdivided, clusters from FPS, target = the surface compressed by 15 %):
+  * skin/body stiffness ratio 1 .. 1e6 (``k_L``, ``k_B`` scaled vs ``k_P``);
+  * ``k_P / k_B`` 1 .. 1e10 and ``k_B`` down to 1e-8 (membrane dominated);
+  * subdivision levels 0 .. 4;
+  * near-degenerate triangles (area / edge^2 = 1e-6) and a zero-area one (refused).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import warnings
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from meshes.structured import structured_box
+from meshes.validate import validate
+from models.backend import MPI, mesh_from_arrays
+from models.body import Body, BodyOptions, PinSpec
+from models.contact import ContactOptions
+from models.embedding.clusters import ClusterOptions, build_clusters
+from models.embedding.subdivision import SubdivisionOptions, subdivide
+from models.embedding.surface import boundary_surface
+from models.errors import InputError, SolverError
+from models.materials import Material
+from models.shell.energy import ShellEnergy, ShellParams
+from models.shell.rest import RestState
+from models.shell.topology import ShellTopology
+from solvers.body_newton import NewtonOptions
+from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver, ShellSolveError
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "benchmarks" / "results" / "extremes.json"
+L = 0.1
+"""Edge of the body cube [m]."""
+MAX_IT = 30
+"""Newton iterations allowed per body solve."""
+ENERGY_BAND = 1e-10
+"""Allowed energy increase per Newton iteration, relative to ``|Pi| + (mu + lambda)|Omega|``."""
+ROWS: list[dict[str, Any]] = []
+
+
+@pytest.fixture(scope="module", autouse=True)
+def table() -> Iterator[None]:
+    """Write the JSON and print the table once the module's cases have run."""
+    yield
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps(ROWS, indent=1, allow_nan=True) + "\n")
+    head = (f"{'case':34s} {'outcome':9s} {'steps':>5s} {'its':>5s} {'max':>4s} "
+            f"{'halv':>4s} {'btrk':>5s} {'flip':>4s} {'shift':>5s} {'min detF/W':>11s}")
+    print("\n" + head + "\n" + "-" * len(head))
+    for r in ROWS:
+        print(f"{r['case']:34s} {r['outcome']:9s} {r.get('steps', 0):5d} "
+              f"{r.get('iterations', 0):5d} {r.get('max_iterations', 0):4d} "
+              f"{r.get('halvings', 0):4d} {r.get('backtracks', 0):5d} {r.get('flips', 0):4d} "
+              f"{r.get('shifted', 0):5d} {r.get('min_det_f', r.get('energy', math.nan)):11.4g}")
+    print(f"written to {RESULTS}")
+
+
+# --------------------------------------------------------------------------------------------
+# Body
+
+
+def cube_mesh(points: np.ndarray | None = None) -> Any:
+    """The 3x3x3 structured cube of edge ``L`` (optionally with moved points)."""
+    tet = structured_box((3, 3, 3), (L, L, L))
+    pts = tet.points if points is None else points
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        clean = validate(pts, tet.tets, source="extreme cube")
+    return mesh_from_arrays(MPI.COMM_WORLD, clean.points, clean.tets)
+
+
+def press_pins(top_velocity: float) -> tuple[PinSpec, ...]:
+    """Bottom face clamped; top face clamped to ``u_z = top_velocity * t``."""
+    return (PinSpec(kind="plane", point=(0.0, 0.0, 0.0), tol=1e-9),
+            PinSpec(kind="plane", point=(0.0, 0.0, L), tol=1e-9,
+                    velocity=(0.0, 0.0, top_velocity)))
+
+
+class EnergyLog:
+    """Energy after every Newton iteration of a body solver (SNES monitor)."""
+
+    def __init__(self, body: Body) -> None:
+        self.body, self.sequences = body, []
+        self.scale = (body.material.mu + body.material.lmbda) * L**3
+        for solver in (body._static_solver, body._dynamic_solver):  # test-only access
+            if solver is not None:
+                solver.problem.solver.setMonitor(self._monitor(solver))
+
+    def _monitor(self, solver: Any) -> Callable[..., None]:
+        def monitor(snes: Any, it: int, _fnorm: float) -> None:
+            if it == 0:
+                self.sequences.append([])
+            self.sequences[-1].append(solver._objective(snes, snes.getSolution()))
+        return monitor
+
+    def worst_increase(self) -> float:
+        """Largest ``Pi_{k+1} - Pi_k`` relative to ``|Pi_k| + scale`` over all solves."""
+        worst = -math.inf
+        for seq in self.sequences:
+            e = np.asarray(seq)
+            if e.size > 1:
+                worst = max(worst, float(np.max(np.diff(e) / (np.abs(e[:-1]) + self.scale))))
+        return worst
+
+
+def run_body(body: Body, steps: int, before: Callable[[int], None] | None = None
+             ) -> dict[str, Any]:
+    """Take ``steps`` body steps; return the record (iterations, fallbacks, det F)."""
+    log = EnergyLog(body)
+    reports = []
+    for k in range(steps):
+        if before is not None:
+            before(k)
+        reports.append(body.step())
+    solvers = [s for s in (body._static_solver, body._dynamic_solver) if s is not None]
+    its = [r.newton_iterations for r in reports]
+    return {"outcome": "converged", "steps": steps, "iterations": sum(its),
+            "max_iterations": max(max(len(s) - 1 for s in log.sequences), 0),
+            "iterations_per_step": its, "halvings": sum(r.halvings for r in reports),
+            "backtracks": sum(s.backtracks for s in solvers),
+            "flips": sum(s.flips for s in solvers),
+            "min_det_f": min(r.min_det_f for r in reports),
+            "energy": reports[-1].energy, "worst_energy_increase": log.worst_increase()}
+
+
+def check_body(row: dict[str, Any], body: Body, halvings_allowed: bool = False) -> None:
+    """The common assertions of a converged body case."""
+    assert np.all(np.isfinite(body.u.x.array)) and np.all(np.isfinite(body.v.x.array))
+    assert math.isfinite(row["energy"]) and row["min_det_f"] > 0.0
+    assert row["worst_energy_increase"] <= ENERGY_BAND, row
+    assert row["max_iterations"] <= MAX_IT
+    if not halvings_allowed:
+        assert row["halvings"] == 0, row
+
+
+def body(material: Material, options: BodyOptions, mesh: Any = None) -> Body:
+    return Body(mesh if mesh is not None else cube_mesh(), material, options,
+                NewtonOptions(max_it=MAX_IT))
+
+
+def top_displacement(b: Body) -> float:
+    """Mean z displacement of the top-face nodes [m]."""
+    X = b.V.tabulate_dof_coordinates()
+    top = np.abs(X[:, 2] - L) < 1e-9
+    return float(b.u.x.array.reshape(-1, 3)[top, 2].mean())
+
+
+@pytest.mark.parametrize("nu", [0.0, 0.3, 0.45, 0.49, 0.499])
+def test_body_poisson_ratio(nu):
+    b = body(Material(E=1e4, nu=nu), BodyOptions(dynamics="static", dt=1.0, gravity=(0, 0, 0),
+                                                 pins=press_pins(-0.1 * L)))
+    row = {"case": f"body nu={nu}", "group": "nu", "nu": nu, **run_body(b, 3)}
+    ROWS.append(row)
+    check_body(row, b)
+    assert top_displacement(b) == pytest.approx(-0.3 * L, rel=1e-12)
+    assert row["iterations"] <= 3 * 12
+
+
+@pytest.mark.parametrize(("degree", "steps"), [(1, 5), (2, 5), (1, 1)])
+def test_body_compression_to_half_height(degree, steps):
+    options = BodyOptions(degree=degree, dynamics="static", dt=1.0, gravity=(0, 0, 0),
+                          pins=press_pins(-0.5 * L / steps))
+    b = body(Material(E=1e4, nu=0.3), options)
+    row = {"case": f"body 50% P{degree} in {steps} step(s)", "group": "compression",
+           **run_body(b, steps)}
+    ROWS.append(row)
+    check_body(row, b, halvings_allowed=steps == 1)
+    assert top_displacement(b) == pytest.approx(-0.5 * L, rel=1e-12)
+    assert 0.0 < row["min_det_f"] < 0.7  # strongly compressed, never inverted
+
+
+@pytest.mark.parametrize(("dynamics", "dt"), [("implicit_euler", 1e-5),
+                                              ("implicit_euler", 1e-3),
+                                              ("implicit_euler", 1e-1),
+                                              ("newmark", 1e-5), ("newmark", 1e-1)])
+def test_body_time_step(dynamics, dt):
+    """Block 1 cm above the ground, 3 steps; dt = 0.1 s lands it hard inside one step."""
+    ground = ContactOptions(obstacle="plane", point=(0.0, 0.0, -0.01), normal=(0.0, 0.0, 1.0))
+    b = body(Material(E=1e4, nu=0.3, density=1000.0),
+             BodyOptions(dynamics=dynamics, dt=dt, contacts=(ground,)))
+    row = {"case": f"body {dynamics} dt={dt:g}", "group": "dt", "dt": dt, **run_body(b, 3)}
+    ROWS.append(row)
+    check_body(row, b)
+    fall = -0.5 * 9.81 * (3 * dt) ** 2
+    z = float(b.u.x.array.reshape(-1, 3)[:, 2].mean())
+    if 3 * dt < math.sqrt(2 * 0.01 / 9.81):  # still in free fall: u_z = -g t^2 / 2 (+ O(dt))
+        assert z == pytest.approx(fall, rel=0.5 if dynamics == "implicit_euler" else 1e-6)
+    elif dynamics == "implicit_euler":  # landed, damped: on (slightly into) the ground
+        assert -0.02 < z < -0.005
+    else:  # Newmark keeps the energy: it may bounce back up, but stays bounded
+        assert abs(z) < 0.01
+
+
+def test_body_hit_by_sphere_at_10_m_per_s():
+    """A clamped block indented 20 % by a sphere moving down at 10 m/s (20 steps of 0.1 ms)."""
+    dt, speed, radius = 1e-4, 10.0, 0.04
+    start = np.array([L / 2, L / 2, L + radius])
+    sphere = ContactOptions(obstacle="sphere", center=tuple(start), radius=radius)
+    b = body(Material(E=1e4, nu=0.3), BodyOptions(dynamics="implicit_euler", dt=dt,
+                                                  contacts=(sphere,), gravity=(0, 0, 0),
+                                                  pins=press_pins(0.0)[:1]))
+    move = lambda k: b.set_sphere_center(start - [0.0, 0.0, speed * dt * (k + 1)])  # noqa: E731
+    row = {"case": "body sphere 10 m/s", "group": "obstacle", **run_body(b, 20, move)}
+    force = b.reaction_force()
+    row["reaction_z"] = float(force[2])
+    ROWS.append(row)
+    check_body(row, b)
+    assert force[2] < 0.0  # the ball pushes the block down
+    top = np.abs(b.V.tabulate_dof_coordinates()[:, 2] - L) < 1e-9
+    dent = float(b.u.x.array.reshape(-1, 3)[top, 2].min())
+    row["dent"] = dent
+    assert -0.02 < dent < -0.005  # the top nodes under the ball went down with it
+
+
+def quality(points: np.ndarray, tets: np.ndarray) -> float:
+    """Smallest signed ``6 V / l_max^3`` over the tets (the validator's shape measure)."""
+    d = points[tets[:, 1:]] - points[tets[:, :1]]
+    vol = np.einsum("ij,ij->i", np.cross(d[:, 0], d[:, 1]), d[:, 2])
+    edges = points[tets[:, [0, 0, 0, 1, 1, 2]]] - points[tets[:, [1, 2, 3, 2, 3, 3]]]
+    return float(np.min(vol / np.linalg.norm(edges, axis=2).max(axis=1) ** 3))
+
+
+def sliver_points(flatness: float) -> np.ndarray:
+    """Move the interior node nearest ``(L/3)^3`` along a fixed generic direction until the
+    first of its tets has quality ``flatness`` (bisection); all others stay positive."""
+    tet = structured_box((3, 3, 3), (L, L, L))
+    pts, tets = tet.points.copy(), np.asarray(tet.tets)
+    node = int(np.argmin(np.linalg.norm(pts - L / 3, axis=1)))
+    base, direction = pts[node].copy(), np.array([0.3, -0.2, -1.0]) / math.sqrt(1.13)
+
+    def q(s: float) -> float:
+        pts[node] = base + s * direction
+        return quality(pts, tets)
+
+    lo, hi = 0.0, L / 3
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if q(mid) > flatness else (lo, mid)
+    q(lo)
+    return pts
+
+
+@pytest.mark.parametrize("flatness", [1e-5, 1e-10])
+def test_body_near_degenerate_tets(flatness):
+    """One sliver tet of quality ``6 V / l^3 = flatness``; 10 % compression in one step.
+    Below the validator's tolerance (1e-8) the mesh is refused, naming the tet."""
+    pts = sliver_points(flatness)
+    tet = structured_box((3, 3, 3), (L, L, L))
+    measured = quality(pts, np.asarray(tet.tets))
+    name = f"body sliver tet q={flatness:g}"
+    try:
+        mesh = cube_mesh(pts)
+    except InputError as exc:
+        ROWS.append({"case": name, "group": "degenerate", "outcome": "refused",
+                     "quality": measured, "message": str(exc)})
+        assert flatness < 1e-8 and "degenerate" in str(exc) and "tet" in str(exc)
+        return
+    b = body(Material(E=1e4, nu=0.3), BodyOptions(dynamics="static", dt=1.0,
+                                                  gravity=(0, 0, 0), pins=press_pins(-0.1 * L)),
+             mesh)
+    row = {"case": name, "group": "degenerate", "quality": measured, **run_body(b, 1)}
+    ROWS.append(row)
+    check_body(row, b, halvings_allowed=True)
+    assert measured == pytest.approx(flatness, rel=1e-3)
+
+
+# --------------------------------------------------------------------------------------------
+# Shell
+
+
+def coarse_surface() -> tuple[np.ndarray, np.ndarray]:
+    """Boundary surface of a 2x2x1 box 0.2 x 0.2 x 0.1 m (coarse body surface)."""
+    tet = structured_box((2, 2, 1), (0.2, 0.2, 0.1))
+    surface = boundary_surface(tet.points, tet.tets)
+    return surface.vertices, surface.faces
+
+
+def shell_case(params: ShellParams, levels: int = 2, flatness: float | None = None
+               ) -> tuple[ShellEnergy, np.ndarray]:
+    """Shell on the subdivided surface, clusters pulling it to the surface compressed 15 %;
+    with ``flatness`` one triangle of the rest state is squashed (:func:`squash_triangle`)."""
+    v0, f0 = coarse_surface()
+    sub = subdivide(v0, f0, SubdivisionOptions(levels=levels))
+    x, faces = sub.vertices, sub.faces
+    if flatness is not None:
+        x = squash_triangle(x, faces, flatness)
+    topo = ShellTopology.from_faces(faces, len(x))
+    clusters = build_clusters(x, faces, ClusterOptions(count=min(12, len(x) // 2)))
+    if levels >= 3:  # H^T H of 12 wide clusters is nearly dense at 10^3+ vertices
+        params = dataclasses.replace(params, penalty_hessian="low_rank")
+    energy = ShellEnergy(topo, RestState.from_positions(topo, x), params, H=clusters.H)
+    centre = x.mean(axis=0)
+    target = centre + (x - centre) * np.array([0.85, 1.0, 1.0])
+    energy.set_target(target)
+    rng = np.random.default_rng(7)
+    noise = 1e-4 if flatness is None else 1e-4 * flatness  # never invert the sliver
+    return energy, target + noise * rng.standard_normal(target.shape)
+
+
+def squash_triangle(x: np.ndarray, faces: np.ndarray, flatness: float) -> np.ndarray:
+    """Move a vertex with a flat star toward the midpoint of the opposite edge of one of its
+    triangles, leaving that triangle ``flatness`` of its area (a sliver; the rest of the star
+    stays unfolded since the midpoint lies on the star's boundary)."""
+    normals = np.cross(x[faces[:, 1]] - x[faces[:, 0]], x[faces[:, 2]] - x[faces[:, 0]])
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    for v in range(len(x)):
+        star = np.flatnonzero((faces == v).any(axis=1))
+        if len(star) >= 5 and np.allclose(normals[star], normals[star[0]], atol=1e-12):
+            face = faces[star[0]]
+            others = face[face != v]
+            mid = 0.5 * (x[others[0]] + x[others[1]])
+            out = x.copy()
+            out[v] = mid + flatness * (x[v] - mid)
+            return out
+    raise AssertionError("no vertex with a flat star")
+
+
+def run_shell(name: str, group: str, energy: ShellEnergy, x0: np.ndarray,
+              extra: dict[str, Any]) -> tuple[dict[str, Any], np.ndarray]:
+    solver = ShellNewtonSolver(energy, ShellNewtonOptions(rtol=1e-8, max_iterations=100))
+    try:
+        x, report = solver.minimize(x0)
+    except ShellSolveError as exc:
+        x, report = exc.x, exc.report
+    e = report.energies
+    increase = float(np.max(np.diff(e) / (np.abs(e[:-1]) + 1e-300))) if e.size > 1 else 0.0
+    row = {"case": name, "group": group, **extra, "n_vertices": energy.n_vertices,
+           "outcome": "converged" if report.converged else "failed",
+           "steps": 1, "iterations": report.iterations,
+           "max_iterations": report.iterations, "shifted": report.shifted_iterations,
+           "backtracks": report.line_search_steps, "energy": report.energy,
+           "grad_norm": report.grad_norm, "tolerance": report.tolerance,
+           "worst_energy_increase": increase, "reason": report.reason}
+    ROWS.append(row)
+    return row, np.asarray(x)
+
+
+def check_shell(row: dict[str, Any], x: np.ndarray, max_iterations: int = 60) -> None:
+    assert row["outcome"] == "converged", row
+    assert np.all(np.isfinite(x)) and math.isfinite(row["energy"])
+    assert row["worst_energy_increase"] <= 1e-12, row  # Armijo: W never increases
+    assert row["iterations"] <= max_iterations
+    assert row["grad_norm"] <= row["tolerance"]
+
+
+@pytest.mark.parametrize("ratio", [1.0, 1e2, 1e4, 1e6])
+def test_shell_skin_to_body_stiffness_ratio(ratio):
+    params = ShellParams(k_L=1e3 * ratio, k_B=1e-1 * ratio, k_P=1e3)
+    energy, x0 = shell_case(params)
+    row, x = run_shell(f"shell E ratio {ratio:g}", "stiffness", energy, x0, {"ratio": ratio})
+    check_shell(row, x)
+
+
+@pytest.mark.parametrize(("k_B", "k_P"), [(1e-1, 1e-1), (1e-1, 1e4), (1e-6, 1e4),
+                                          (1e-8, 1e2), (1e-8, 1e4)])
+def test_shell_penalty_to_bending_ratio(k_B, k_P):
+    """Membrane dominated (k_B -> 1e-8): compression buckles the membrane, the Hessian is
+    indefinite for most iterations (shifted), so the bound is looser there (measured 77)."""
+    params = ShellParams(k_L=1e3, k_B=k_B, k_P=k_P)
+    energy, x0 = shell_case(params)
+    name = f"shell kP/kB={k_P / k_B:.0e} kB={k_B:g}"
+    row, x = run_shell(name, "penalty", energy, x0, {"k_B": k_B, "k_P": k_P})
+    check_shell(row, x, max_iterations=60 if k_P / k_B < 1e9 else 100)
+
+
+@pytest.mark.parametrize("levels", [0, 1, 2, 3, 4])
+def test_shell_subdivision_levels(levels):
+    energy, x0 = shell_case(ShellParams(), levels=levels)
+    row, x = run_shell(f"shell subdivision L={levels}", "subdivision", energy, x0,
+                       {"levels": levels})
+    check_shell(row, x)
+
+
+@pytest.mark.parametrize("flatness", [1e-3, 1e-6, 0.0])
+def test_shell_near_degenerate_triangles(flatness):
+    """One rest triangle squashed to ``flatness`` of its area (0: zero area, refused)."""
+    name = f"shell sliver triangle {flatness:g}"
+    try:
+        energy, x0 = shell_case(ShellParams(), levels=2, flatness=flatness)
+        row, x = run_shell(name, "degenerate", energy, x0, {"flatness": flatness})
+    except (InputError, SolverError) as exc:
+        ROWS.append({"case": name, "group": "degenerate", "outcome": "refused",
+                     "message": str(exc).splitlines()[0], "error": type(exc).__name__})
+        assert flatness == 0.0 and isinstance(exc, InputError), exc
+        assert "degenerate" in str(exc) and "face" in str(exc)
+        return
+    if row["outcome"] != "converged":  # known limitation (report): fails, but cleanly
+        assert np.all(np.isfinite(x)) and row["worst_energy_increase"] <= 1e-12
+        assert row["reason"] == "max_iterations"
+        pytest.xfail(f"known: a rest triangle squashed to {flatness:g} of its area is accepted "
+                     f"by RestState but the shell Newton does not converge in 100 iterations "
+                     f"(|g| = {row['grad_norm']:.3e} > {row['tolerance']:.3e})")
+    check_shell(row, x, max_iterations=100)

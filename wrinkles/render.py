@@ -1,0 +1,182 @@
+"""Off-screen pictures of the shell: PNG frames, ``shell.png`` (last frame) and ``shell.gif``.
+
+``wrinkles render OUT_DIR`` (or ``python -m wrinkles.render OUT_DIR``) reads ``shell.xdmf`` /
+``shell.h5`` of a run with h5py (pyvista cannot read the dolfinx/XDMF layout), builds a
+pyvista ``PolyData`` of the deformed shell ``rest + displacement`` per stored step, coloured by
+the bending energy density, and renders it off-screen. The colour range is fixed over all
+frames (the 2nd-98th percentile of the density over all steps) so the animation does not
+flicker; lighting with specular highlights makes wrinkles visible even where the density is
+small. The GIF is assembled with Pillow.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.errors import InputError
+from wrinkles.shell_output import SHELL_XDMF_NAME, ShellFrame, read_shell_series
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """How the shell is rendered.
+
+    Attributes:
+        width: image width [px].
+        height: image height [px].
+        frames_dir: sub-directory of the run for the per-frame PNGs.
+        gif_ms: duration of one GIF frame [ms].
+        view: camera direction, a vector from the focal point towards the camera.
+        colormap: matplotlib colormap name for the bending energy density.
+        log_scale: colour by log10 of the density (wrinkle crests stand out).
+
+    """
+
+    width: int = 960
+    height: int = 640
+    frames_dir: str = "frames"
+    gif_ms: int = 150
+    view: tuple[float, float, float] = (1.0, -1.6, 1.1)
+    colormap: str = "viridis"
+    log_scale: bool = True
+
+    def __post_init__(self) -> None:
+        if self.width < 16 or self.height < 16:
+            raise InputError(f"render: width and height must be >= 16, got "
+                             f"{self.width}x{self.height}")
+        if self.gif_ms < 1:
+            raise InputError(f"render.gif_ms: must be >= 1, got {self.gif_ms}")
+
+
+def polydata(rest: np.ndarray, faces: np.ndarray, frame: ShellFrame) -> Any:
+    """Return the deformed shell of one step as pyvista PolyData with its point fields."""
+    import pyvista as pv
+
+    cells = np.hstack([np.full((faces.shape[0], 1), 3), faces]).astype(np.int64).ravel()
+    mesh = pv.PolyData(rest + frame.displacement, cells)
+    mesh.point_data["bending_energy_density"] = frame.bending_energy_density
+    return mesh
+
+
+def colour_values(density: np.ndarray, options: RenderOptions, floor: float) -> np.ndarray:
+    """Return the scalars shown: the density, or log10 of it (values below ``floor`` raised)."""
+    if not options.log_scale:
+        return density
+    return np.log10(np.maximum(density, floor))
+
+
+def colour_range(frames: Sequence[ShellFrame], options: RenderOptions) -> tuple[float, float]:
+    """Return the 2nd and 98th percentile of the shown scalars over all frames.
+
+    In log scale only positive densities count (the rest state has none at all); the
+    lower end is also the floor applied to smaller values.
+    """
+    values = np.concatenate([f.bending_energy_density for f in frames])
+    if options.log_scale:
+        values = np.log10(values[values > 0.0]) if np.any(values > 0.0) else np.zeros(1)
+    lo, hi = np.percentile(values, [2.0, 98.0])
+    return float(lo), float(max(hi, lo + 1e-12))
+
+
+def render_frame(mesh: Any, path: Path, clim: tuple[float, float], options: RenderOptions,
+                 camera: Any | None = None) -> Any:
+    """Render one PolyData off-screen into ``path``; return the camera used (reuse it)."""
+    import pyvista as pv
+
+    plotter: Any = pv.Plotter(off_screen=True, window_size=[options.width, options.height])
+    floor = 10.0 ** clim[0] if options.log_scale else 0.0
+    scalars = colour_values(mesh.point_data["bending_energy_density"], options, floor)
+    title = "log10 bending energy density" if options.log_scale else "bending energy density"
+    plotter.add_mesh(mesh, scalars=scalars, clim=clim, cmap=options.colormap, smooth_shading=True,
+                     specular=0.5, specular_power=20.0, scalar_bar_args={"title": title})
+    if camera is None:
+        plotter.view_vector(options.view)
+        plotter.camera.zoom(1.2)
+    else:
+        plotter.camera = camera
+    plotter.screenshot(str(path))
+    used = plotter.camera.copy()
+    plotter.close()
+    return used
+
+
+def write_gif(pngs: Sequence[Path], path: Path, options: RenderOptions) -> None:
+    """Assemble PNG frames into an animated GIF with Pillow (looping)."""
+    from PIL import Image
+
+    images = [Image.open(p).convert("P", palette=Image.Palette.ADAPTIVE) for p in pngs]
+    images[0].save(path, save_all=True, append_images=images[1:], duration=options.gif_ms,
+                   loop=0)
+
+
+def render_run(out: Path, options: RenderOptions | None = None) -> list[Path]:
+    """Render every stored step of ``out/shell.xdmf``; return the files written.
+
+    Writes ``out/frames/shell_NNNN.png``, ``out/shell.png`` (the last step) and
+    ``out/shell.gif``.
+
+    Raises:
+        InputError: no shell series in ``out``.
+
+    """
+    opts = options or RenderOptions()
+    series = Path(out) / SHELL_XDMF_NAME
+    if not series.is_file() or not series.with_suffix(".h5").is_file():
+        raise InputError(f"{series}: no shell series to render (run a scene with a [shell] "
+                         "table first)")
+    rest, faces, _, frames = read_shell_series(series)
+    if not frames:
+        raise InputError(f"{series}: the series has no step")
+    folder = Path(out) / opts.frames_dir
+    folder.mkdir(parents=True, exist_ok=True)
+    clim, camera, pngs = colour_range(frames, opts), None, []
+    for k, frame in enumerate(frames):
+        pngs.append(folder / f"shell_{k:04d}.png")
+        camera = render_frame(polydata(rest, faces, frame), pngs[-1], clim, opts, camera)
+    last = Path(out) / "shell.png"
+    render_frame(polydata(rest, faces, frames[-1]), last, clim, opts, camera)
+    gif = Path(out) / "shell.gif"
+    write_gif(pngs, gif, opts)
+    return [*pngs, last, gif]
+
+
+def add_parser(commands: Any) -> Any:
+    """Add the ``render`` sub-command to an argparse sub-parser collection; return it."""
+    parser = commands.add_parser("render", help="render the shell of a run: PNG frames, "
+                                 "shell.png and shell.gif (off-screen, pyvista)")
+    parser.add_argument("out", type=Path, help="output directory of a run (holds shell.xdmf)")
+    parser.add_argument("--width", type=int, default=RenderOptions.width, help="image width")
+    parser.add_argument("--height", type=int, default=RenderOptions.height,
+                        help="image height")
+    return parser
+
+
+def command_render(args: argparse.Namespace) -> int:
+    """Run the ``render`` sub-command; return the exit code."""
+    written = render_run(args.out, RenderOptions(width=args.width, height=args.height))
+    print(f"rendered {len(written)} files into {args.out} (shell.png, shell.gif, "
+          f"{len(written) - 2} frames)", flush=True)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Stand-alone entry point: ``python -m wrinkles.render OUT_DIR``."""
+    parser = argparse.ArgumentParser(prog="wrinkles")
+    add_parser(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["render", *(sys.argv[1:] if argv is None else argv)])
+    try:
+        return command_render(args)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return exc.exit_code
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,440 @@
+"""The embedded-shell stage of the frame loop (Algorithm 1 of the draft; Remillard & Kry 2013).
+
+Set-up, once: the outward boundary surface of the body mesh is subdivided ``L`` levels into
+the shell T (its rest shape X_T); the embedding matrix B maps the body's displacement space
+onto T's vertices; clusters give the constraint matrix H; the shell energy
+
+    W(x) = k_L W_L + k_A W_A + k_B W_B + k_P ||H (x - y)||^2
+
+and its Newton solver are built. Per frame, after the body step:
+
+    y   = B (X_q + u_q) = X_T + B u_q                     (target; B reproduces X_q exactly)
+    x_0 = x_prev + (y - y_prev) + eta_k                   (warm start moved with the body)
+    x   = argmin W                                        (Newton on every rank, rank 0's x kept)
+
+``eta_k`` is an optional tiny deterministic imperfection along the rest vertex normals
+(``imperfection`` times the mean rest edge length, seeded by the frame number): a flat face
+compressed exactly in its plane is a stationary point of W (the out-of-plane gradient is
+zero), so without it a descent method never leaves the plane and no wrinkle can form.
+
+The stiffnesses come either from ``[shell.energy]`` (``k_*`` directly) or from the physical
+skin ``[shell.skin]`` (E, nu, thickness -> :mod:`models.shell.stiffness`). Wrinkles are
+cylindrical bends, so the skin's bending stiffness uses the "cylinder" calibration
+``k_B = D / 6`` by default (with ``k_B = D / 2`` a cylindrical bend costs 3x the plate energy
+on equilateral meshes, measured by the shell engineers). With a skin and no explicit cluster
+count or spacing, the clusters are sized from the wrinkle wavelength of the skin on the body
+material, ``lambda = 2 pi h (Ebar_f / (3 Ebar_s))^(1/3)`` (sigma = lambda/pi, r = lambda/2).
+
+The shell is solved redundantly on every rank and rank 0's result broadcast, so it is the same
+on every rank and independent of the number of ranks (up to the body's own solver tolerance).
+Two-way coupling (:mod:`models.coupling`) feeds the penalty force back to the body through
+``B^T``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from models.backend import MPI
+from models.body import Body
+from models.coupling import (
+    CoupledBody,
+    CouplingOptions,
+    body_force_function,
+    penalty_force,
+)
+from models.embedding.clusters import ClusterOptions, Clusters, build_clusters
+from models.embedding.embedding import (
+    Embedding,
+    EmbeddingOptions,
+    apply_to_function,
+    build_embedding,
+    mesh_surface,
+)
+from models.embedding.subdivision import SubdivisionOptions, subdivide
+from models.errors import InputError, SolverError
+from models.materials import Material
+from models.shell.energy import ShellEnergy, ShellParams
+from models.shell.rest import RestState
+from models.shell.stiffness import ShellMaterial, shell_stiffness
+from models.shell.topology import ShellTopology
+from solvers.shell_newton import (
+    ShellNewtonOptions,
+    ShellNewtonSolver,
+    ShellSolveError,
+    ShellSolveReport,
+)
+from wrinkles.shell_output import SHELL_XDMF_NAME, ShellFrame, ShellSeries
+
+StageRecord = dict[str, Any]
+
+
+@dataclass(frozen=True)
+class SkinOptions:
+    """Physical skin replacing ``k_L``, ``k_A``, ``k_B`` of ``[shell.energy]``.
+
+    Attributes:
+        E: Young's modulus of the skin E_f [Pa].
+        nu: Poisson ratio of the skin.
+        thickness: skin thickness h [m].
+        membrane: membrane mapping of :func:`models.shell.stiffness.membrane_stiffness`
+            ("equibiaxial" or "isotropic", the latter needs nu >= 1/3).
+        bending: bending calibration: "cylinder" (k_B = D/6, for wrinkles) or "sphere"
+            (k_B = D/2), D = E h^3 / (12 (1 - nu^2)).
+
+    """
+
+    E: float = 1.0e7
+    nu: float = 0.3
+    thickness: float = 1.0e-3
+    membrane: Literal["equibiaxial", "isotropic"] = "equibiaxial"
+    bending: Literal["sphere", "cylinder"] = "cylinder"
+
+    def __post_init__(self) -> None:
+        for name in ("E", "thickness"):
+            if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0.0):
+                raise InputError(f"shell.skin.{name}: must be > 0, got {getattr(self, name)}")
+        if not -1.0 < self.nu < 0.5:
+            raise InputError(f"shell.skin.nu: must be in (-1, 0.5), got {self.nu}")
+
+
+@dataclass(frozen=True)
+class ShellOptions:
+    """The ``[shell]`` table of a scene: the embedded shell and its coupling.
+
+    Attributes:
+        subdivision: levels and scheme (linear | loop) of the surface subdivision.
+        clusters: cluster placement and sizing (count, spacing, or skin physics).
+        energy: stiffnesses k_L, k_A, k_B, k_P and Hessian options (``ShellParams``).
+        skin: physical skin; when given it sets k_L, k_A, k_B (k_P stays from ``energy``)
+            and, without an explicit cluster count/spacing, the physical cluster sizing.
+        newton: the shell's Newton solver (``ShellNewtonOptions``); with
+            ``gradient_scale = 0`` the stage uses the largest initial gradient norm seen so
+            far as the reference of ``rtol`` (warm-started frames are not over-solved).
+        embedding: point location tolerances of B.
+        coupling: one-way (default) or two-way coupling with the body.
+        imperfection: amplitude of the deterministic warm-start perturbation along the rest
+            normals, as a fraction of the mean rest edge length (0 = none).
+        xdmf: write ``shell.xdmf`` + ``shell.h5`` (every frame the body series writes).
+        render: after the run, write ``shell.png``, per-frame PNGs and ``shell.gif``
+            (:mod:`wrinkles.render`).
+
+    """
+
+    subdivision: SubdivisionOptions = field(default_factory=SubdivisionOptions)
+    clusters: ClusterOptions = field(default_factory=ClusterOptions)
+    energy: ShellParams = field(default_factory=ShellParams)
+    skin: SkinOptions | None = None
+    newton: ShellNewtonOptions = field(default_factory=ShellNewtonOptions)
+    embedding: EmbeddingOptions = field(default_factory=EmbeddingOptions)
+    coupling: CouplingOptions = field(default_factory=CouplingOptions)
+    imperfection: float = 1.0e-3
+    xdmf: bool = True
+    render: bool = False
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.imperfection) and self.imperfection >= 0.0):
+            raise InputError(f"shell.imperfection: must be >= 0, got {self.imperfection}")
+
+
+# --------------------------------------------------------------------------------------------
+# Set-up
+
+
+def mean_edge_length(x: np.ndarray, topology: ShellTopology) -> float:
+    """Mean length of the shell's edges [m]."""
+    e = topology.edges
+    return float(np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1).mean())
+
+
+def shell_params(options: ShellOptions, edge_length: float) -> ShellParams:
+    """``ShellParams`` of the scene: ``[shell.energy]``, or its k_P with the skin's k_L/k_A/k_B."""
+    skin = options.skin
+    if skin is None:
+        return options.energy
+    mat = ShellMaterial(E=skin.E, nu=skin.nu, thickness=skin.thickness, edge_length=edge_length)
+    k = shell_stiffness(mat, skin.membrane, skin.bending)
+    return dataclasses.replace(options.energy, k_L=k["k_L"], k_A=k["k_A"], k_B=k["k_B"])
+
+
+def cluster_options(options: ShellOptions, material: Material) -> ClusterOptions:
+    """Cluster options, sized from the skin and the body material when asked to be physical.
+
+    Physical sizing applies when a skin is given and the clusters have no count, spacing or
+    skin thickness of their own.
+    """
+    c, skin = options.clusters, options.skin
+    if skin is None or c.count is not None or c.spacing is not None or c.skin_thickness:
+        return c
+    return dataclasses.replace(c, skin_thickness=skin.thickness, skin_E=skin.E, skin_nu=skin.nu,
+                               body_E=material.E, body_nu=material.nu)
+
+
+def vertex_normals(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Return unit area-weighted vertex normals of a triangle mesh (n, 3)."""
+    a, b, c = (x[faces[:, k]] for k in range(3))
+    fn = np.cross(b - a, c - a)
+    n = np.zeros_like(x)
+    for k in range(3):
+        np.add.at(n, faces[:, k], fn)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
+@dataclass
+class Shell:
+    """The embedded shell of a run and its state.
+
+    Attributes:
+        options: the ``[shell]`` options.
+        topology: shell connectivity.
+        rest: ``(n, 3)`` rest positions X_T (= B X_q).
+        embedding: B for the body's displacement space.
+        clusters: clusters, H and partition.
+        energy: the shell energy (its target is the current y).
+        solver: the Newton solver (reused over frames).
+        x: ``(n, 3)`` current shell positions.
+        y: ``(n, 3)`` current target.
+        normals: ``(n, 3)`` rest vertex normals (imperfection direction).
+        edge_length: mean rest edge length [m].
+        gradient_scale: reference gradient norm of the relative tolerance (0 = not yet set).
+        facts: set-up numbers for the summary.
+
+    """
+
+    options: ShellOptions
+    topology: ShellTopology
+    rest: np.ndarray
+    embedding: Embedding
+    clusters: Clusters
+    energy: ShellEnergy
+    solver: ShellNewtonSolver
+    x: np.ndarray
+    y: np.ndarray
+    normals: np.ndarray
+    edge_length: float
+    gradient_scale: float = 0.0
+    facts: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def params(self) -> ShellParams:
+        """The stiffnesses in use."""
+        return self.energy.params
+
+
+def build_shell(body: Body, options: ShellOptions, material: Material) -> Shell:
+    """Surface -> subdivision -> rest shell, B, clusters and H, energy and solver (collective).
+
+    Every rank builds the same shell (the surface is gathered identically on all ranks).
+    """
+    t0 = time.perf_counter()
+    surface = mesh_surface(body.mesh)
+    sub = subdivide(surface.vertices, surface.faces, options.subdivision)
+    topology = ShellTopology.from_faces(sub.faces, sub.vertices.shape[0])
+    emb = build_embedding(body.V, sub.vertices, options.embedding)
+    rest = np.ascontiguousarray(sub.vertices)
+    a = mean_edge_length(rest, topology)
+    clusters = build_clusters(rest, sub.faces, cluster_options(options, material))
+    params = shell_params(options, a)
+    energy = ShellEnergy(topology, RestState.from_positions(topology, rest), params, clusters.H)
+    solver = ShellNewtonSolver(energy, options.newton)  # type: ignore[arg-type]
+    facts = {"vertices": int(rest.shape[0]), "faces": int(sub.faces.shape[0]),
+             "coarse_surface_vertices": int(surface.vertices.shape[0]),
+             "mean_edge_length": a, "k_L": params.k_L, "k_A": params.k_A,
+             "k_B": params.k_B, "k_P": params.k_P,
+             "clusters": dataclasses.asdict(clusters.report),
+             "embedding": dataclasses.asdict(emb.report),
+             "setup_time": time.perf_counter() - t0}
+    return Shell(options, topology, rest, emb, clusters, energy, solver, rest.copy(),
+                 rest.copy(), vertex_normals(rest, sub.faces), a, facts=facts)
+
+
+# --------------------------------------------------------------------------------------------
+# Per frame
+
+
+def target(shell: Shell, body: Body) -> np.ndarray:
+    """``y = X_T + B u_q`` on every rank (collective)."""
+    return shell.rest + apply_to_function(shell.embedding, body.u)
+
+
+def imperfection(shell: Shell, frame: int) -> np.ndarray:
+    """Deterministic perturbation ``eta_k`` of frame ``frame`` along the rest normals (n, 3)."""
+    amp = shell.options.imperfection * shell.edge_length
+    if amp == 0.0:
+        return np.zeros_like(shell.x)
+    rng = np.random.default_rng(frame)
+    return amp * rng.standard_normal((shell.x.shape[0], 1)) * shell.normals
+
+
+def _minimize(shell: Shell, x0: np.ndarray) -> tuple[np.ndarray, ShellSolveReport]:
+    """Set the tolerance scale and minimise; ShellSolveError becomes a plain SolverError."""
+    if shell.options.newton.gradient_scale == 0.0:
+        ev = shell.energy.evaluate(x0, order=1)
+        g0 = float(np.linalg.norm(np.asarray(ev.grad)))
+        shell.gradient_scale = max(shell.gradient_scale, g0)
+        shell.solver.options = dataclasses.replace(shell.options.newton,
+                                                   gradient_scale=shell.gradient_scale or 1.0)
+    try:
+        return shell.solver.minimize(x0)
+    except ShellSolveError as exc:
+        raise SolverError(f"shell solve failed: {exc}") from None
+
+
+def solve_shell(shell: Shell, y: np.ndarray, frame: int, comm: MPI.Comm) -> ShellSolveReport:
+    """Move the target to ``y``, warm-start, minimise, take rank 0's x (collective).
+
+    Every rank solves the same problem redundantly (serial solvers on ``COMM_SELF``; the
+    PETSc log set-up in :mod:`solvers.linear` is collective on ``PETSC_COMM_WORLD``, so a
+    rank-0-only solve deadlocks), then rank 0's result is broadcast so all ranks hold
+    bitwise the same shell.
+    """
+    x0 = shell.x + (y - shell.y) + imperfection(shell, frame)
+    shell.energy.set_target(y)
+    x, report = _minimize(shell, x0)
+    shell.x, shell.y = np.asarray(comm.bcast(x, root=0)), y
+    return report
+
+
+def deviation(shell: Shell) -> tuple[float, float]:
+    """Return ``(max |x - y|, max |(x - y) . n_y|)``: total and normal distance from the target.
+
+    ``n_y`` are the unit vertex normals of the target surface; the normal part is the wrinkle
+    amplitude (tangential sliding inside the null space of H is not a wrinkle).
+    """
+    d = shell.x - shell.y
+    normal = np.einsum("ij,ij->i", d, vertex_normals(shell.y, shell.topology.faces))
+    return float(np.linalg.norm(d, axis=1).max()), float(np.abs(normal).max())
+
+
+def shell_record(shell: Shell, report: ShellSolveReport) -> StageRecord:
+    """Return the frame's shell numbers for the summary (rank-independent)."""
+    ev = shell.energy.evaluate(shell.x, order=0)
+    total, amplitude = deviation(shell)
+    return {"shell_iterations": report.iterations, "shell_converged": report.converged,
+            "shell_energy": ev.value, "shell_terms": dict(ev.terms),
+            "shell_grad_norm": report.grad_norm, "shell_tolerance": report.tolerance,
+            "wrinkle_amplitude": amplitude,
+            "wrinkle_amplitude_rel": amplitude / shell.edge_length,
+            "max_distance_to_target": total,
+            "shell_time_evaluate": report.time_evaluate,
+            "shell_time_factorize": report.time_factorize,
+            "shell_time_solve": report.time_solve, "shell_time_total": report.time_total}
+
+
+def shell_frame(shell: Shell, t: float) -> ShellFrame:
+    """Return the output fields of the current state."""
+    return ShellFrame(t, shell.x - shell.rest, shell.energy.bending_density(shell.x))
+
+
+# --------------------------------------------------------------------------------------------
+# Stages
+
+
+Writer = Callable[[int, float], None]
+
+
+def make_writer(shell: Shell, out: Path, comm: MPI.Comm,
+                writes: Callable[[int], bool]) -> Writer:
+    """Create ``shell.xdmf`` with the rest state (t = 0); return ``write(frame, t)``."""
+    if not shell.options.xdmf:
+        return lambda frame, t: None
+    series = (ShellSeries(out / SHELL_XDMF_NAME, shell.rest, shell.topology.faces,
+                          shell.clusters.partition) if comm.rank == 0 else None)
+    if series is not None:
+        series.write(shell_frame(shell, 0.0))
+
+    def write(frame: int, t: float) -> None:
+        if series is not None and writes(frame):
+            series.write(shell_frame(shell, t))
+
+    return write
+
+
+def one_way_stage(shell: Shell, body: Body, write: Writer) -> Callable[[int], StageRecord]:
+    """Stage run after the body stage: target from the body, shell solve, output."""
+
+    def stage(frame: int) -> StageRecord:
+        report = solve_shell(shell, target(shell, body), frame, body.mesh.comm)
+        write(frame, body.t)
+        return shell_record(shell, report)
+
+    return stage
+
+
+def _max_abs(comm: MPI.Comm, a: np.ndarray) -> float:
+    """Global max |a| over the ranks' owned + ghost values."""
+    return float(comm.allreduce(float(np.abs(a).max(initial=0.0)), op=MPI.MAX))
+
+
+@dataclass
+class CouplingState:
+    """The force fed back to the body in two-way coupling.
+
+    Attributes:
+        shell_force: ``(n, 3)`` penalty force on the target currently applied (relaxed).
+
+    """
+
+    shell_force: np.ndarray
+
+
+def feed_back(shell: Shell, body: CoupledBody, state: CouplingState) -> None:
+    """Relax the penalty force of the current shell into the body's nodal load ``B^T f``."""
+    omega = shell.options.coupling.relaxation
+    f = penalty_force(shell.clusters.H, shell.params.k_P, shell.x, shell.y)
+    state.shell_force = (1.0 - omega) * state.shell_force + omega * f
+    body.set_nodal_force(body_force_function(shell.embedding, state.shell_force, body.V))
+
+
+def coupling_record(body: CoupledBody, state: CouplingState, iterations: int,
+                    change: float) -> StageRecord:
+    """Two-way coupling numbers: iterations, last relative change, the two total forces."""
+    return {"coupling_iterations": iterations, "coupling_change": change,
+            "coupling_force_shell": state.shell_force.sum(axis=0).tolist(),
+            "coupling_force_body": body.applied_force().tolist()}
+
+
+def two_way_stage(shell: Shell, body: CoupledBody, steps: int,
+                  body_stage: Callable[[int], Mapping[str, Any]],
+                  write: Writer) -> Callable[[int], StageRecord]:
+    """Stage replacing body + shell: fixed point of body step <-> shell solve per frame.
+
+    Body steps with the current load, shell solve; then repeatedly: feed the penalty force
+    back (``B^T f``), redo the frame's body steps from the saved state, re-solve the shell,
+    until ``max|u_k - u_{k-1}| <= rtol max|u_k|`` or ``max_iterations``.
+    """
+    opts, comm = shell.options.coupling, body.mesh.comm
+    state = CouplingState(np.zeros_like(shell.rest))
+
+    def stage(frame: int) -> StageRecord:
+        saved, x_start, y_start = body.snapshot(), shell.x.copy(), shell.y.copy()
+        record = dict(body_stage(frame))
+        report = solve_shell(shell, target(shell, body), frame, comm)
+        change, k = float("inf"), 0
+        for k in range(1, opts.max_iterations + 1):  # noqa: B007  (k is reported)
+            u_old = body.u.x.array.copy()
+            feed_back(shell, body, state)
+            body.restore(saved)
+            shell.x, shell.y = x_start.copy(), y_start.copy()
+            record = dict(body_stage(frame))
+            change = _max_abs(comm, body.u.x.array - u_old) / max(_max_abs(comm, body.u.x.array),
+                                                                 1e-300)
+            report = solve_shell(shell, target(shell, body), frame, comm)
+            if change <= opts.rtol:
+                break
+        write(frame, body.t)
+        return {**record, **shell_record(shell, report),
+                **coupling_record(body, state, k, change)}
+
+    return stage
+
+
+__all__ = ["Shell", "ShellOptions", "SkinOptions", "build_shell", "make_writer",
+           "one_way_stage", "shell_record", "solve_shell", "target", "two_way_stage"]

@@ -35,7 +35,6 @@ from solvers.decomposition.distributed import distributed_minimize
 from solvers.decomposition.parallel import (
     ParallelOptions,
     parallel_block_solve,
-    start_petsc_log,
 )
 from solvers.shell_newton import ShellNewtonOptions, minimize
 
@@ -177,7 +176,6 @@ def main() -> None:
     """Run the benchmark (see the module docstring)."""
     args = _args()
     comm = MPI.COMM_WORLD
-    start_petsc_log()  # collective once; the rank-0-only serial solve would hang otherwise
     sizes = [5_000] if args.quick else args.sizes
     rows: list[dict] = []
     for k, n in enumerate(sizes):

@@ -22,10 +22,27 @@ import ufl  # noqa: E402
 from mpi4py import MPI  # noqa: E402
 from petsc4py import PETSc  # noqa: E402
 
-__all__ = ["MPI", "PETSc", "basix", "dolfinx", "ufl", "DOLFINX_VERSION", "mesh_from_arrays",
+__all__ = ["MPI", "PETSc", "basix", "dolfinx", "ufl", "DOLFINX_VERSION", "begin_petsc_log",
+           "mesh_from_arrays",
            "vector_space", "global_scalar", "quadrature_expression", "global_min_on_cells"]
 
 DOLFINX_VERSION: str = dolfinx.__version__
+
+
+def begin_petsc_log() -> None:
+    """Start PETSc's default performance log (its event timers) on every rank.
+
+    ``PETSc.Log.begin()`` (``PetscLogDefaultBegin``) is collective on ``PETSC_COMM_WORLD``:
+    called from code that runs on rank 0 only (a serial shell solve) it deadlocks. It is
+    therefore called once here, at import on every rank (every module imports the stack from
+    this one), and :mod:`solvers.linear` only reads the events (analysis / numeric
+    factorisation times from ``PETSc.Log.Event(name).getPerfInfo()``). Idempotent.
+    """
+    if not PETSc.Log.isActive():
+        PETSc.Log.begin()
+
+
+begin_petsc_log()
 
 
 # --- body helpers (dolfinx-0.11-specific calls used by models/body.py) ------------------------

@@ -4,7 +4,7 @@ Every step minimises one incremental potential (Ortiz & Stainier 1999; Kane et a
 
     Pi(u) = int_Omega psi(F(u)) dX                                   (materials.py)
           + int_Omega rho c / 2 |u - u_pred|^2 dX                    (inertia, dynamics only)
-          - int_Omega rho g.u dX                                     (gravity)
+          - int_Omega rho g.u dX - F.u                               (gravity, nodal load)
           + sum_obstacles int_dOmega k/2 <g(X + u)>_-^2 dA           (contact.py)
 
 with, for a step of length h from (u_n, v_n, a_n):
@@ -14,6 +14,12 @@ with, for a step of length h from (u_n, v_n, a_n):
                      a = c (u - u_pred),  v = v_n + h ((1 - gamma) a_n + gamma a).
 The stationarity of Pi is the time-discrete momentum balance, so the residual and the
 Jacobian are ``ufl.derivative`` of Pi and the Newton line search can evaluate Pi itself.
+
+The nodal load ``F`` (zero unless :meth:`Body.set_nodal_load` sets it, e.g. the embedded
+shell's penalty force ``B^T f`` in two-way coupling, :mod:`models.coupling`) is written in UFL
+as ``-int g.u dX`` with ``g`` the L2 Riesz representative of ``F`` (``M g = F``, M the vector
+mass matrix with the energy's quadrature, exact for P1 and P2), so its first variation is
+exactly ``-F``; it is part of the ``gravity`` (external load) energy term.
 
 Pins (``PinSpec``) hold selected components of selected nodes at
 ``value + velocity * t``: a moving pin compresses or stretches the body over time. In
@@ -32,6 +38,7 @@ import numpy as np
 
 from models.backend import (
     MPI,
+    PETSc,
     dolfinx,
     global_scalar,
     ufl,
@@ -40,7 +47,7 @@ from models.backend import (
 from models.contact import ContactOptions, PenaltyContact, _vector3
 from models.errors import InputError, SolverError
 from models.materials import Material
-from solvers.body_newton import EnergyNewton, NewtonOptions, NewtonResult
+from solvers.body_newton import EnergyNewton, NewtonOptions, NewtonResult, QuadraticTerm
 
 DYNAMICS: tuple[str, ...] = ("static", "implicit_euler", "newmark")
 NEWMARK_BETA: float = 0.25
@@ -217,6 +224,7 @@ class Body:
         a: Acceleration [m/s^2] (Newmark only; zero otherwise).
         t: Current time (load parameter) [s].
         contacts: ``PenaltyContact`` objects, one per ``options.contacts`` entry.
+        load: nodal load density ``g`` [N/m^3] with ``M g = F`` (:meth:`set_nodal_load`).
 
     """
 
@@ -235,6 +243,9 @@ class Body:
         self._accel_ready = False
         self._inertia = dolfinx.fem.Constant(mesh, 0.0)
         self.gravity = dolfinx.fem.Constant(mesh, np.array(self.options.gravity))
+        self.load = self._function("nodal_load_density")
+        self._mass_ksp: Any = None
+        self._term: QuadraticTerm | None = None
         self.contacts = [PenaltyContact(c, mesh, material.E) for c in self.options.contacts]
         self.dx = ufl.Measure("dx", domain=mesh,
                               metadata={"quadrature_degree": self.options.qdegree})
@@ -274,7 +285,7 @@ class Body:
         rho, u, dx = self.material.density, self.u, self.dx
         terms = {
             "elastic": self.material.psi(self.deformation_gradient()) * dx,
-            "gravity": -rho * ufl.dot(self.gravity, u) * dx,
+            "gravity": -(rho * ufl.dot(self.gravity, u) + ufl.dot(self.load, u)) * dx,
             "kinetic": 0.5 * rho * ufl.dot(self.v, self.v) * dx,
             "contact": sum((c.energy(u) for c in self.contacts),
                            0.0 * ufl.dot(u, u) * dx),
@@ -309,6 +320,8 @@ class Body:
     def energies(self) -> dict[str, float]:
         """Kinetic, elastic, gravity, contact and total energy of the current state [J]."""
         values = {k: global_scalar(f) for k, f in self._forms.items()}
+        if self._term is not None:
+            values["gravity"] += self._term.value(self.u.x.petsc_vec)
         values["total"] = sum(values.values())
         return values
 
@@ -325,6 +338,49 @@ class Body:
             raise InputError(f"reaction_force: no contact number {index} "
                              f"({len(self._reaction)} defined)")
         return np.array([global_scalar(f) for f in self._reaction[index]])
+
+    def set_nodal_load(self, F: Any) -> None:
+        """Make the nodal force ``F`` (dolfinx Function on ``V``) a load: ``Pi -= F . u``.
+
+        Solves ``M g = F`` for the load density :attr:`load` (collective); the next steps and
+        :meth:`energies` include ``-int g . u dX``. A zero ``F`` removes the load.
+        """
+        self._mass_solver().solve(F.x.petsc_vec, self.load.x.petsc_vec)
+        self.load.x.scatter_forward()
+
+    def set_quadratic_energy(self, term: QuadraticTerm | None) -> None:
+        """Add a quadratic energy to the potential of later steps (``None``: remove it).
+
+        The term ``1/2 u^T K u - c^T u + e0`` (:class:`solvers.body_newton.QuadraticTerm`)
+        also counts in the ``gravity`` (external) entry of :meth:`energies`. Collective.
+
+        Two-way coupling makes the shell's cluster penalty, with the shell fixed, such a term
+        (:func:`models.coupling.penalty_term`): an implicit load that the body's Newton
+        solves together with its own energy.
+        """
+        self._term = term
+        for solver in (self._static_solver, self._dynamic_solver):
+            if solver is not None:
+                solver.set_quadratic_term(term)
+
+    def applied_load(self) -> np.ndarray:
+        """Total force ``int g dX`` [N] of the nodal load (3,); equals ``sum_j F_j``."""
+        return np.array([global_scalar(dolfinx.fem.form(self.load[k] * self.dx))
+                         for k in range(3)])
+
+    def _mass_solver(self) -> Any:
+        """LU solver of the vector mass matrix (built once, same quadrature as the energy)."""
+        if self._mass_ksp is None:
+            w, du = ufl.TestFunction(self.V), ufl.TrialFunction(self.V)
+            M = dolfinx.fem.petsc.assemble_matrix(dolfinx.fem.form(ufl.dot(du, w) * self.dx))
+            M.assemble()
+            ksp = PETSc.KSP().create(self.mesh.comm)
+            ksp.setOperators(M)
+            ksp.setType("preonly")
+            ksp.getPC().setType("lu")
+            ksp.getPC().setFactorSolverType(self.newton.linear_solver)
+            self._mass_ksp, self._mass = ksp, M
+        return self._mass_ksp
 
     def set_sphere_center(self, center: Any, index: int = 0) -> None:
         """Move the centre of sphere obstacle ``index`` [m] before the next step."""
@@ -383,23 +439,23 @@ class Body:
 
     def _advance(self, t_target: float, dynamic: bool) -> StepReport:
         """Reach ``t_target`` by sub-steps, halving the sub-step after each failure."""
-        start = self._save()
+        start = self.snapshot()
         h = max(t_target - self.t, 0.0)
         iterations, halvings, substeps = 0, 0, 0
         first = True
         while first or self.t < t_target - 1e-12 * max(self.options.dt, abs(t_target)):
             first = False
             h = min(h, t_target - self.t)
-            saved = self._save()
+            saved = self.snapshot()
             result = self._substep(h, dynamic)
             iterations += result.iterations
             if result.converged:
                 substeps += 1
                 continue
-            self._restore(saved)
+            self.restore(saved)
             halvings += 1
             if halvings > self.newton.max_halvings or h == 0.0:
-                self._restore(start)
+                self.restore(start)
                 raise SolverError(self._diagnostic(result, halvings - 1, h))
             h *= 0.5
         return self._report(iterations, halvings, substeps)
@@ -495,10 +551,12 @@ class Body:
         fields = (self.u, self.v, self.a, self._u_n, self._v_n, self._a_n, self._u_pred)
         return [f.x.array for f in fields] + [self._rate]
 
-    def _save(self) -> _State:
+    def snapshot(self) -> _State:
+        """Copy of the state arrays and time (to retry a step, or redo it with another load)."""
         return _State(self.t, [a.copy() for a in self._arrays()])
 
-    def _restore(self, state: _State) -> None:
+    def restore(self, state: _State) -> None:
+        """Return to a :meth:`snapshot` (state arrays, time and pins; the load is kept)."""
         for array, saved in zip(self._arrays(), state.arrays, strict=True):
             array[:] = saved
         self.t = state.t

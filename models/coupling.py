@@ -9,12 +9,9 @@ and, since ``dy/du_q = B``, on the body's degrees of freedom with the nodal forc
 ``F = B^T f`` (``add_transpose_to_function``). Because every row of B sums to 1, the total
 force is conserved: ``sum_j F_j = sum_i f_i`` (per component).
 
-The body minimises an energy, so a nodal force enters as the potential ``-F . u``. It is
-written in UFL as ``-int g . u dX`` with ``g`` the L2 Riesz representative of ``F``
-(``M g = F``, M the vector mass matrix assembled with the body's own quadrature, exact for
-P1 and P2), so that its first variation is exactly ``-F``. :class:`CoupledBody` adds that term
-to :class:`models.body.Body`; the total force actually applied is ``int g dX`` (the load
-vector summed over the dofs of each component, since the basis is a partition of unity).
+The body minimises an energy, so a nodal force enters as the potential ``-F . u``:
+:meth:`models.body.Body.set_nodal_load` (``-int g . u dX`` with ``M g = F``); the total force
+actually applied is :meth:`models.body.Body.applied_load`, ``int g dX``.
 """
 
 from __future__ import annotations
@@ -25,12 +22,13 @@ from typing import Any, Literal
 import numpy as np
 import scipy.sparse as sp
 
-from models.backend import PETSc, dolfinx, global_scalar, ufl
-from models.body import Body, _State
+from models.backend import PETSc, dolfinx
 from models.embedding.embedding import Embedding, add_transpose_to_function
 from models.errors import InputError
+from solvers.body_newton import QuadraticTerm
 
 CouplingMode = Literal["one_way", "two_way"]
+CouplingScheme = Literal["explicit", "implicit"]
 
 
 @dataclass(frozen=True)
@@ -41,6 +39,14 @@ class CouplingOptions:
         mode: ``"one_way"`` (the shell follows the body, Algorithm 1 of the draft) or
             ``"two_way"`` (the penalty force ``B^T f`` is fed back to the body and the frame's
             body step re-solved until the body displacement stops changing).
+        scheme: two-way iteration: ``"explicit"`` feeds the (relaxed) penalty force back as
+            a fixed load; ``"implicit"`` makes the penalty, with the shell fixed, a quadratic
+            term of the body's energy (:func:`penalty_term`, Newton sees its stiffness) and
+            alternates body and shell minimisation of the total energy (block Gauss-Seidel:
+            monotone in the total energy, so it does not diverge for stiff skins;
+            ``relaxation`` is not used).
+        aitken: (implicit scheme) Aitken dynamic relaxation of the shell iterate between
+            body/shell iterations (:class:`wrinkles.shell_stage.Aitken`).
         max_iterations: body/shell fixed-point iterations per frame (two-way), >= 1.
         rtol: the fixed point is converged when ``max|u_k - u_{k-1}| <= rtol max|u_k|``
             (dimensionless).
@@ -54,6 +60,8 @@ class CouplingOptions:
     """
 
     mode: CouplingMode = "one_way"
+    scheme: CouplingScheme = "explicit"
+    aitken: bool = True
     max_iterations: int = 10
     rtol: float = 1e-6
     relaxation: float = 0.5
@@ -62,6 +70,9 @@ class CouplingOptions:
         if self.mode not in ("one_way", "two_way"):
             raise InputError(f"shell.coupling.mode: expected 'one_way' or 'two_way', "
                              f"got {self.mode!r}")
+        if self.scheme not in ("explicit", "implicit"):
+            raise InputError(f"shell.coupling.scheme: expected 'explicit' or 'implicit', "
+                             f"got {self.scheme!r}")
         if self.max_iterations < 1:
             raise InputError(f"shell.coupling.max_iterations: must be >= 1, "
                              f"got {self.max_iterations}")
@@ -88,55 +99,45 @@ def penalty_force(H: sp.csr_matrix, k_P: float, x: np.ndarray, y: np.ndarray) ->
     return 2.0 * k_P * (H.T @ (H @ (np.asarray(x) - np.asarray(y))))
 
 
-class CoupledBody(Body):
-    """A :class:`Body` with an extra nodal load ``F`` in its energy: ``Pi(u) - F . u``.
+def penalty_term(emb: Embedding, H: sp.csr_matrix, k_P: float, d: np.ndarray,
+                 V: Any) -> QuadraticTerm:
+    """Return the cluster penalty, shell fixed, as a quadratic energy of the body's dofs.
 
-    The term ``-int g . u dX`` (``M g = F``) is added to the body's external-load term, so the
-    ``gravity`` entry of its energies and step reports is the potential of *all* external
-    loads (gravity and the shell's coupling force).
+    With ``d = x - X_T`` (shell minus rest positions) and ``y = X_T + B u``,
+
+        E(u) = k_P ||H (d - B u)||^2 = 1/2 u^T K u - c^T u + e0,
+        K = 2 k_P B^T H^T H B,   c = 2 k_P B^T H^T H d,   e0 = k_P ||H d||^2,
+
+    per component (``K`` acts on the 3 components alike: ``K (x) I_3`` in the interleaved
+    dof layout ``3 b + k``). ``-dE/du = B^T f`` with ``f`` of :func:`penalty_force`, so the
+    total force on the body equals ``sum_i f_i``. Collective; each rank sets its owned rows.
+
+    Args:
+        emb: B for the body's space ``V``.
+        H: ``(c, n)`` cluster matrix.
+        k_P: penalty stiffness.
+        d: ``(n, 3)`` shell displacement ``x - X_T``.
+        V: the body's vector function space.
+
     """
-
-    def _energy_terms(self) -> dict[str, Any]:
-        """Body terms with ``-int g . u dX`` added to the external-load (gravity) term."""
-        terms = super()._energy_terms()
-        self.load = dolfinx.fem.Function(self.V, name="coupling_load")
-        terms["gravity"] = terms["gravity"] - ufl.dot(self.load, self.u) * self.dx
-        return terms
-
-    def _mass_solver(self) -> Any:
-        """LU solver of the vector mass matrix (built once, same quadrature as the energy)."""
-        if getattr(self, "_mass_ksp", None) is None:
-            w, du = ufl.TestFunction(self.V), ufl.TrialFunction(self.V)
-            M = dolfinx.fem.petsc.assemble_matrix(dolfinx.fem.form(ufl.dot(du, w) * self.dx))
-            M.assemble()
-            ksp = PETSc.KSP().create(self.mesh.comm)
-            ksp.setOperators(M)
-            ksp.setType("preonly")
-            ksp.getPC().setType("lu")
-            ksp.getPC().setFactorSolverType(self.newton.linear_solver)
-            self._mass_ksp, self._mass = ksp, M
-        return self._mass_ksp
-
-    def set_nodal_force(self, F: Any) -> None:
-        """Make the dolfinx Function ``F`` (nodal force values, owned dofs) the body's load.
-
-        Solves ``M g = F`` and stores ``g`` in :attr:`load` (collective).
-        """
-        self._mass_solver().solve(F.x.petsc_vec, self.load.x.petsc_vec)
-        self.load.x.scatter_forward()
-
-    def applied_force(self) -> np.ndarray:
-        """Total force ``int g dX`` [N] the load applies to the body (3,)."""
-        return np.array([global_scalar(dolfinx.fem.form(self.load[k] * self.dx))
-                         for k in range(3)])
-
-    def snapshot(self) -> _State:
-        """Copy of the state arrays and time (to re-solve a step with another load)."""
-        return self._save()
-
-    def restore(self, state: _State) -> None:
-        """Return to a :meth:`snapshot`."""
-        self._restore(state)
+    B = emb.global_matrix()
+    Q = (H.T @ H).tocsr()
+    K = sp.kron((2.0 * k_P) * (B.T @ (Q @ B)), sp.identity(3), format="csr")
+    c = ((2.0 * k_P) * (B.T @ (Q @ d))).reshape(-1)
+    lo, hi = V.dofmap.index_map.local_range
+    bs = V.dofmap.index_map_bs
+    rows = K[lo * bs:hi * bs].tocsr()
+    rows.sort_indices()
+    n_global = K.shape[0]
+    mat = PETSc.Mat().createAIJ(size=((rows.shape[0], n_global), (rows.shape[0], n_global)),
+                                csr=(rows.indptr.astype(PETSc.IntType),
+                                     rows.indices.astype(PETSc.IntType), rows.data),
+                                comm=V.mesh.comm)
+    mat.assemble()
+    vec = mat.createVecLeft()
+    vec.array[:] = c[lo * bs:hi * bs]
+    hd = H @ d
+    return QuadraticTerm(mat, vec, float(k_P * np.sum(hd * hd)))
 
 
 def body_force_function(emb: Embedding, forces: np.ndarray, V: Any) -> Any:
@@ -146,5 +147,5 @@ def body_force_function(emb: Embedding, forces: np.ndarray, V: Any) -> Any:
     return F
 
 
-__all__ = ["CoupledBody", "CouplingMode", "CouplingOptions", "body_force_function",
-           "penalty_force"]
+__all__ = ["CouplingMode", "CouplingScheme", "CouplingOptions", "body_force_function",
+           "penalty_force", "penalty_term"]

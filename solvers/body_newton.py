@@ -27,6 +27,15 @@ Line search (``NewtonOptions.line_search_type``):
   noise), the step is accepted iff the residual norm decreases.
 * ``"petsc_bt"``: PETSc's ``bt`` search on the same objective (``SNESSetObjective``).
 
+Extra quadratic term (:class:`QuadraticTerm`, :meth:`EnergyNewton.set_quadratic_term`): an
+energy ``E(u) = 1/2 u^T K u - c^T u + e0`` given as a PETSc matrix ``K`` and vector ``c`` in
+the dof layout of ``u`` (e.g. the embedded shell's cluster penalty
+``k_P ||H (x - B (X + u))||^2`` with the shell ``x`` fixed, :mod:`models.coupling`). It is
+added to the objective, to the residual (``K u - c``, free rows only: Dirichlet rows keep
+``u - g``) and to the Jacobian (``K`` with the Dirichlet rows and columns removed, so the
+identity rows of the Dirichlet dofs stay). The Jacobian matrix is recreated once with the
+union of both sparsity patterns when a term is set.
+
 ``solve()`` never trusts SNES: it reads the converged reason and checks ``min det F`` and the
 finiteness of the energy after every solve, and reports the outcome; the caller (``Body``)
 restores its last good state and cuts the step on failure.
@@ -158,6 +167,45 @@ class NewtonResult:
                 f"min det F={self.min_det_f:.3e}")
 
 
+@dataclass(frozen=True)
+class QuadraticTerm:
+    """An extra energy ``E(u) = 1/2 u^T K u - c^T u + e0`` of the Newton problem.
+
+    Attributes:
+        K: symmetric PETSc matrix in the (global) dof layout of ``u`` (its Hessian).
+        c: PETSc vector in the same layout (``-c`` is its gradient at ``u = 0``).
+        e0: constant energy [J] (makes ``E`` the physical value, e.g. ``k_P |H d|^2``).
+
+    """
+
+    K: Any
+    c: Any
+    e0: float = 0.0
+
+    def value(self, u: Any) -> float:
+        """``1/2 u^T K u - c^T u + e0`` for a PETSc vector ``u`` (collective)."""
+        Ku = self.K.createVecLeft()
+        self.K.mult(u, Ku)
+        value = 0.5 * float(Ku.dot(u).real) - float(self.c.dot(u).real) + self.e0
+        Ku.destroy()
+        return value
+
+    def gradient(self, u: Any) -> Any:
+        """Return a new PETSc vector ``K u - c`` (collective)."""
+        g = self.K.createVecLeft()
+        self.K.mult(u, g)
+        g.axpy(-1.0, self.c)
+        return g
+
+
+def bc_rows(bcs: list[Any], u: Any) -> np.ndarray:
+    """Global PETSc indices of the Dirichlet dofs of ``bcs`` owned by this rank."""
+    start = u.x.petsc_vec.getOwnershipRange()[0]
+    rows = [bc.dof_indices()[0][:bc.dof_indices()[1]] for bc in bcs]
+    local = np.unique(np.concatenate(rows)) if rows else np.zeros(0, dtype=np.int64)
+    return (local + start).astype(PETSc.IntType)
+
+
 class EnergyNewton:
     """Minimise an energy form ``Pi(u)`` with SNES Newton and an energy line search.
 
@@ -194,6 +242,10 @@ class EnergyNewton:
         if self.options.line_search and not self.options.uses_petsc_bt:
             self.problem.solver.setLineSearchPreCheck(self._armijo)
         self.problem.solver.setConvergenceTest(self._convergence_test)
+        self._bcs, self._bc_rows = bcs, bc_rows(bcs, u)
+        self._term: QuadraticTerm | None = None
+        self._term_jacobian: Any = None
+        self._union: Any = None
         self.backtracks = 0
         self.flips = 0
         self._last_step, self._ls_failed, self._fnorm0 = 1.0, False, math.inf
@@ -203,7 +255,60 @@ class EnergyNewton:
         if self.min_det_f() <= 0.0:
             return math.inf
         value = global_scalar(self._energy)
+        if self._term is not None:
+            value += self._term.value(self.u.x.petsc_vec)
         return value if math.isfinite(value) else math.inf
+
+    def set_quadratic_term(self, term: QuadraticTerm | None) -> None:
+        """Add ``term`` to the energy, residual and Jacobian of later solves (``None``: remove).
+
+        The first term set recreates the Jacobian matrix with the union of the form's and
+        ``K``'s patterns (later terms must have a pattern inside it). Collective.
+        """
+        self._term = term
+        if self._term_jacobian is not None:
+            self._term_jacobian.destroy()
+            self._term_jacobian = None
+        if term is None:
+            return
+        self._term_jacobian = term.K.duplicate(copy=True)
+        self._term_jacobian.zeroRowsColumns(self._bc_rows, diag=0.0)
+        if self._union is None:
+            self._wrap_callbacks()
+            A = self.problem.A
+            self._assemble_jacobian(self.u.x.petsc_vec, A)  # the form's pattern, assembled
+            self._union = A.duplicate(copy=True)
+            self._union.axpy(1.0, self._term_jacobian,
+                             structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+            self._union.setLGMap(*A.getLGMap())
+            self.problem.solver.setJacobian(self._jacobian, self._union, self._union)
+
+    def _wrap_callbacks(self) -> None:
+        """Replace dolfinx's SNES residual by :meth:`_residual` (dolfinx's assembly + term)."""
+        snes, problem, bcs = self.problem.solver, self.problem, self._bcs
+        self._assemble_residual = lambda x, b: dolfinx.fem.petsc.assemble_residual(
+            snes, x, b, self.u, problem.F, problem.J, bcs)
+        self._assemble_jacobian = lambda x, J: dolfinx.fem.petsc.assemble_jacobian(
+            snes, x, J, J, self.u, problem.J, None, bcs)
+        snes.setFunction(self._residual, self.problem.b)
+
+    def _residual(self, _snes: Any, x: Any, b: Any) -> None:
+        """Residual of dolfinx plus ``K u - c`` on the free rows (SNES function)."""
+        self._assemble_residual(x, b)
+        if self._term is None:
+            return
+        g = self._term.gradient(x)
+        g.setValues(self._bc_rows, np.zeros(self._bc_rows.size))
+        g.assemble()
+        b.axpy(1.0, g)
+        g.destroy()
+        b.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+
+    def _jacobian(self, _snes: Any, x: Any, J: Any, _P: Any) -> None:
+        """Jacobian of dolfinx plus ``K`` without Dirichlet rows / columns (SNES Jacobian)."""
+        self._assemble_jacobian(x, J)
+        if self._term_jacobian is not None:
+            J.axpy(1.0, self._term_jacobian, structure=PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
 
     def min_det_f(self) -> float:
         """Minimum of ``det F(u)`` over all quadrature points of all cells and ranks."""

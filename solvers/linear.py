@@ -299,7 +299,6 @@ class _PetscBackend:
 
     def __init__(self, pattern: sp.csr_matrix, options: LinearSolverOptions,
                  expected_negative: int) -> None:
-        PETSc.Log.begin()  # enables the event timers used to split analysis / numeric time
         self.options = options
         self.expected_negative = expected_negative
         self.n = pattern.shape[0]

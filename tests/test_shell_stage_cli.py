@@ -4,6 +4,7 @@ command, the ``[shell]`` table's validation, and 1 vs 2 ranks."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -117,8 +118,18 @@ def test_two_ranks_give_the_serial_shell(demo, mpiexec, tmp_path):
     assert diff < 1e-6
 
 
-def test_resume_with_a_shell_is_refused(demo):
-    """The shell state is not checkpointed yet: --resume of a [shell] scene is an InputError."""
-    proc = run_cli(["run", str(DEFAULT), "--out", str(demo), "--resume", *COARSE])
-    assert proc.returncode == 1
-    assert "cannot be restarted yet" in proc.stderr
+def test_resume_with_a_shell_continues_the_run(demo, tmp_path):
+    """The checkpoint holds the shell state: --resume of the 2-frame demo with --frames 3
+    continues at frame 3 and appends one step to both series (a copy of the demo output)."""
+    out = tmp_path / "demo"
+    shutil.copytree(demo, out)
+    extended = ["--frames", "3", *COARSE[2:]]
+    proc = run_cli(["run", str(DEFAULT), "--out", str(out), "--resume", *extended])
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines()[0].split()[1] == "3/3"
+    for name in ("body.xdmf", "shell.xdmf"):
+        _, _, steps = read_series(out / name)
+        assert [t for t, _ in steps] == pytest.approx([0.0, 0.4, 0.8, 1.2])
+    frames = json.loads((out / "summary.json").read_text())["frames"]
+    assert [f["frame"] for f in frames] == [1, 2, 3]
+    assert frames[-1]["details"]["shell_converged"]

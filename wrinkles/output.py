@@ -32,7 +32,7 @@ import platform
 import shutil
 import sys
 import xml.etree.ElementTree as ET
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -140,8 +140,7 @@ class XdmfSeries:
         """Append the current values of the fields at physical time ``t`` [s] and commit."""
         for name, u in self.fields.items():
             self._nodal[name].interpolate(u)
-        if self.atomic:
-            on_root(self.comm, lambda: copy_series(self.path, self.work))
+        on_root(self.comm, lambda: begin_frame(self.path, self.work, self.atomic))
         with dolfinx.io.XDMFFile(self.comm, str(self.target), "a") as xdmf:
             for u1 in self._nodal.values():
                 xdmf.write_function(u1, t)
@@ -149,15 +148,40 @@ class XdmfSeries:
 
     def _commit(self) -> None:
         """Make the written frame visible in ``path`` (rank 0): HDF5 first, then the XML."""
-        if self.atomic:
-            os.replace(self.work.with_suffix(".h5"), self.path.with_suffix(".h5"))
-        merge_time_collections(self.target, self.path)
+        commit_frame(self.path, self.work, self.atomic,
+                     lambda: merge_time_collections(self.target, self.path))
 
 
 def copy_series(src: Path, dst: Path) -> None:
     """Copy an XDMF file and its HDF5 file (the work copy a frame is appended to)."""
     shutil.copyfile(src.with_suffix(".h5"), dst.with_suffix(".h5"))
     shutil.copyfile(src, dst)
+
+
+def begin_frame(path: Path, work: Path, atomic: bool) -> Path:
+    """Start a kill-safe frame of the series ``path`` (rank 0); return the file to append to.
+
+    With ``atomic`` the series is copied to ``work`` (in ``.work/``) and the frame is
+    appended there; otherwise it is appended to ``path`` in place. Shared by the body
+    (:class:`XdmfSeries`) and the shell (:class:`wrinkles.shell_output.ShellSeries`) series.
+    """
+    if not atomic:
+        return path
+    work.parent.mkdir(parents=True, exist_ok=True)
+    copy_series(path, work)
+    return work
+
+
+def commit_frame(path: Path, work: Path, atomic: bool, write_xml: Callable[[], None]) -> None:
+    """Commit a frame begun by :func:`begin_frame` (rank 0): HDF5 rename first, then the XML.
+
+    ``os.replace`` of ``work``'s HDF5 file over ``path``'s is atomic, and ``write_xml`` (which
+    must write ``path`` atomically) runs only afterwards, so at any instant the XML on disk
+    references only datasets present in the HDF5 file on disk.
+    """
+    if atomic:
+        os.replace(work.with_suffix(".h5"), path.with_suffix(".h5"))
+    write_xml()
 
 
 def write_xml_atomic(tree: ET.ElementTree[ET.Element[str]], path: Path) -> None:
@@ -256,15 +280,17 @@ def drop_steps_after(path: Path, t: float) -> None:
     """Remove the steps later than ``t`` [s] from an XDMF file and their HDF5 data.
 
     The XML without those steps is committed first, then an HDF5 copy without their datasets
-    replaces ``body.h5``, so a kill in between leaves a consistent series.
+    (those no remaining step references; the shell series shares its mesh datasets) replaces
+    the ``.h5`` file, so a kill in between leaves a consistent series.
     """
     merge_time_collections(path)
     tree = ET.parse(path)
     late = [(c, g) for c in tree.getroot().iter("Grid") for g in c.findall("Grid")
             if float(_step_key(g)) > t + 1e-12 * max(1.0, abs(t))]
-    datasets = [name for _, g in late for name in _datasets(g)]
     for collection, grid in late:
         collection.remove(grid)
+    kept = {name for g in tree.getroot().iter("Grid") for name in _datasets(g)}
+    datasets = [name for _, g in late for name in _datasets(g) if name not in kept]
     write_xml_atomic(tree, path)
     h5_path = path.with_suffix(".h5")
     tmp = h5_path.with_name(f".{h5_path.name}.tmp")

@@ -12,13 +12,14 @@ after it without touching the loop::
 
 A scene with a ``[shell]`` table gets the embedded-shell stage of :mod:`wrinkles.shell_stage`
 this way (``shell.xdmf`` beside ``body.xdmf``); with ``shell.coupling.mode = "two_way"`` the body
-is a :class:`models.coupling.CoupledBody` and one coupled stage replaces body and shell stages
-(fixed point of body step and shell solve per frame). ``shell.render`` renders the shell
-(:mod:`wrinkles.render`) when the run completes.
+gets the shell's penalty force as a nodal load (``Body.set_nodal_load``) and one coupled stage
+replaces body and shell stages (fixed point of body step and shell solve per frame).
+``shell.render`` renders the shell (:mod:`wrinkles.render`) when the run completes.
 
-After every frame the summary and a checkpoint of the body state (:mod:`wrinkles.checkpoint`)
-are written; ``prepare(..., restart=True)`` continues a run from its last completed frame:
-state, frame records and XDMF series are taken over, later output is dropped and recomputed.
+After every frame the summary and a checkpoint of the body state (:mod:`wrinkles.checkpoint`,
+with the shell's state as its ``shell`` arrays) are written; ``prepare(..., restart=True)``
+continues a run from its last completed frame: body and shell state, frame records and the
+XDMF series (body and shell) are taken over, later output is dropped and recomputed.
 
 Parallel runs: rank 0 builds or reads the mesh (gmsh and meshio are serial) and dolfinx
 distributes it; an ``InputError`` on rank 0 is broadcast (:mod:`wrinkles.collective`) so every
@@ -42,13 +43,14 @@ import meshes
 from meshes.tetmesh import TetMesh
 from models.backend import MPI, dolfinx, mesh_from_arrays
 from models.body import Body, StepReport
-from models.coupling import CoupledBody
 from models.errors import InputError, SolverError
 from wrinkles.checkpoint import (
     CHECKPOINT_NAME,
+    BodyState,
     gather_state,
     read_state,
     scatter_state,
+    with_arrays,
     write_state,
 )
 from wrinkles.collective import on_root, shared
@@ -62,9 +64,13 @@ from wrinkles.output import (
 from wrinkles.scene import Scene, SceneMesh, mesh_builder, scene_dict
 from wrinkles.shell_stage import (
     Shell,
+    apply_force,
     build_shell,
+    implicit_stage,
     make_writer,
     one_way_stage,
+    restore_shell,
+    shell_arrays,
     two_way_stage,
 )
 
@@ -203,9 +209,6 @@ def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False) -> R
     With ``restart`` the body state, the frame records and the XDMF series are taken over
     from the run in ``out`` (its last completed frame); otherwise a new run starts at t = 0.
     """
-    if restart and scene.shell is not None:
-        raise InputError("--restart: scenes with a [shell] table cannot be restarted yet (the "
-                         "shell state is not checkpointed); rerun from the start")
     on_root(comm, lambda: make_output_dir(out))
     mesh = distributed_mesh(scene.mesh, comm)
     body = make_body(scene, mesh)
@@ -214,58 +217,82 @@ def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False) -> R
     run.facts = {"ranks": comm.size, "status": "running", "frames_planned": run.n_frames,
                  "started": datetime.now(UTC).isoformat(timespec="seconds"),
                  "mesh": mesh_facts(mesh, body)}
+    state: BodyState | None = None
     if restart:
-        resume(run)
+        state = resume(run)
     else:
         start(run)
     if scene.shell is not None:
-        attach_shell(run)
+        attach_shell(run, state)
+    if not restart:
+        save_frame(run, 0)
     return run
 
 
 def make_body(scene: Scene, mesh: dolfinx.mesh.Mesh) -> Body:
-    """Make the scene's body: a :class:`CoupledBody` (nodal load hook) for two-way coupling."""
-    two_way = scene.shell is not None and scene.shell.coupling.mode == "two_way"
-    cls = CoupledBody if two_way else Body
-    return cls(mesh, scene.material, scene.body, scene.newton)
+    """Make the scene's body."""
+    return Body(mesh, scene.material, scene.body, scene.newton)
 
 
-def attach_shell(run: Run) -> None:
-    """Build the shell, write its rest state, and add its stage(s) (collective)."""
+def attach_shell(run: Run, state: BodyState | None) -> None:
+    """Build the shell and its output, restore its ``state`` if resumed, add its stage(s).
+
+    Collective. ``state`` is the checkpoint of a resumed run (``None`` for a new run).
+
+    Raises:
+        InputError: the checkpoint being resumed holds no shell state.
+
+    """
     options = run.scene.shell
     assert options is not None  # only called for scenes with a [shell] table
     shell = build_shell(run.body, options, run.scene.material)
+    if state is not None:
+        restore_shell(shell, checkpoint_shell(state))
+        if options.coupling.mode == "two_way":
+            apply_force(shell, run.body)
     every, last = run.scene.output.every, run.n_frames
-    write = make_writer(shell, run.out, run.comm, lambda f: f % every == 0 or f == last)
-    if isinstance(run.body, CoupledBody):
+    write = make_writer(shell, run.out, run.comm, lambda f: f % every == 0 or f == last,
+                        None if state is None else state.time, run.scene.output.atomic)
+    if options.coupling.mode == "two_way":
         steps = run.scene.time.steps_per_frame
         body = body_stage(run.body, steps)
-        run.stages = [("body+shell", two_way_stage(shell, run.body, steps, body, write))]
+        stage = (implicit_stage(shell, run.body, body, write)
+                 if options.coupling.scheme == "implicit"
+                 else two_way_stage(shell, run.body, steps, body, write))
+        run.stages = [("body+shell", stage)]
     else:
         run.stages.append(("shell", one_way_stage(shell, run.body, write)))
     run.shell = shell
     run.facts["shell"] = shell.facts
 
 
+def checkpoint_shell(state: BodyState) -> dict[str, np.ndarray]:
+    """Return the shell arrays of a checkpoint; InputError if it has none."""
+    if "shell" not in state.arrays:
+        raise InputError(f"{CHECKPOINT_NAME}: the checkpoint holds no shell state (written "
+                         "by a run without [shell] or by an older version); rerun from the start")
+    return state.arrays["shell"]
+
+
 def start(run: Run) -> None:
-    """Write the mesh and the initial state (frame 0) of a new run."""
+    """Write the mesh and the initial state (t = 0) of a new run's body series."""
     if run.scene.output.xdmf:
-        run.series = XdmfSeries(run.out / XDMF_NAME, output_fields(run.body))
+        run.series = XdmfSeries(run.out / XDMF_NAME, output_fields(run.body),
+                                atomic=run.scene.output.atomic)
         run.series.write(run.body.t)
-    save_frame(run, 0)
 
 
-def resume(run: Run) -> None:
+def resume(run: Run) -> BodyState:
     """Take over the state, records and output of the run in ``run.out`` (collective).
+
+    Returns:
+        The checkpoint (its ``arrays`` hold the other stages' state, e.g. the shell's).
 
     Raises:
         InputError: no checkpoint or summary in ``run.out``, or its scene differs from this
             one in anything but ``time``, ``output`` and ``newton``.
 
     """
-    if run.scene.body.dynamics == "newmark":
-        raise InputError("--restart: body.dynamics = 'newmark' cannot be restarted yet "
-                         "(Body has no way to mark its restored acceleration as valid)")
     state = shared(run.comm, lambda: read_state(run.out / CHECKPOINT_NAME))
     records, facts = shared(run.comm, lambda: previous_run(run, state.frame))
     scatter_state(run.body, state)
@@ -275,8 +302,9 @@ def resume(run: Run) -> None:
                                                           "ranks": run.comm.size}]
     if run.scene.output.xdmf:
         run.series = XdmfSeries(run.out / XDMF_NAME, output_fields(run.body),
-                                resume_after=state.time)
+                                resume_after=state.time, atomic=run.scene.output.atomic)
     write_summary(run)
+    return state
 
 
 def previous_run(run: Run, frame: int) -> tuple[list[FrameRecord], dict[str, Any]]:
@@ -332,6 +360,8 @@ def save_frame(run: Run, frame: int) -> None:
     write_summary(run)
     if run.scene.output.checkpoint:
         state = gather_state(run.body, frame)
+        if state is not None and run.shell is not None:
+            state = with_arrays(state, "shell", shell_arrays(run.shell))
         if state is not None:
             write_state(run.out / CHECKPOINT_NAME, state)
 

@@ -45,10 +45,10 @@ import numpy as np
 from models.backend import MPI
 from models.body import Body
 from models.coupling import (
-    CoupledBody,
     CouplingOptions,
     body_force_function,
     penalty_force,
+    penalty_term,
 )
 from models.embedding.clusters import ClusterOptions, Clusters, build_clusters
 from models.embedding.embedding import (
@@ -71,6 +71,7 @@ from solvers.shell_newton import (
     ShellSolveError,
     ShellSolveReport,
 )
+from wrinkles.collective import on_root
 from wrinkles.shell_output import SHELL_XDMF_NAME, ShellFrame, ShellSeries
 
 StageRecord = dict[str, Any]
@@ -205,6 +206,8 @@ class Shell:
         edge_length: mean rest edge length [m].
         gradient_scale: reference gradient norm of the relative tolerance (0 = not yet set).
         facts: set-up numbers for the summary.
+        force: ``(n, 3)`` relaxed penalty force on the target fed back to the body (two-way
+            coupling; zero otherwise).
 
     """
 
@@ -221,6 +224,11 @@ class Shell:
     edge_length: float
     gradient_scale: float = 0.0
     facts: dict[str, Any] = field(default_factory=dict)
+    force: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def __post_init__(self) -> None:
+        if self.force.shape != self.rest.shape:
+            self.force = np.zeros_like(self.rest)
 
     @property
     def params(self) -> ShellParams:
@@ -287,15 +295,18 @@ def _minimize(shell: Shell, x0: np.ndarray) -> tuple[np.ndarray, ShellSolveRepor
         raise SolverError(f"shell solve failed: {exc}") from None
 
 
-def solve_shell(shell: Shell, y: np.ndarray, frame: int, comm: MPI.Comm) -> ShellSolveReport:
+def solve_shell(shell: Shell, y: np.ndarray, frame: int, comm: MPI.Comm,
+                perturb: bool = True) -> ShellSolveReport:
     """Move the target to ``y``, warm-start, minimise, take rank 0's x (collective).
 
-    Every rank solves the same problem redundantly (serial solvers on ``COMM_SELF``; the
-    PETSc log set-up in :mod:`solvers.linear` is collective on ``PETSC_COMM_WORLD``, so a
-    rank-0-only solve deadlocks), then rank 0's result is broadcast so all ranks hold
-    bitwise the same shell.
+    Every rank solves the same problem redundantly (serial solvers on ``COMM_SELF``; a
+    rank-0-only solve no longer deadlocks since the PETSc log is begun at import,
+    :func:`models.backend.begin_petsc_log`, but would leave the other ranks idle), then
+    rank 0's result is broadcast so all ranks hold bitwise the same shell. ``perturb =
+    False`` leaves out the imperfection (repeated solves of one frame in the coupling
+    iteration).
     """
-    x0 = shell.x + (y - shell.y) + imperfection(shell, frame)
+    x0 = shell.x + (y - shell.y) + (imperfection(shell, frame) if perturb else 0.0)
     shell.energy.set_target(y)
     x, report = _minimize(shell, x0)
     shell.x, shell.y = np.asarray(comm.bcast(x, root=0)), y
@@ -328,6 +339,38 @@ def shell_record(shell: Shell, report: ShellSolveReport) -> StageRecord:
             "shell_time_solve": report.time_solve, "shell_time_total": report.time_total}
 
 
+STATE_ARRAYS: tuple[str, ...] = ("positions", "target", "gradient_scale", "force")
+"""Checkpoint arrays of the shell: x, y, the tolerance reference and the fed-back force."""
+
+
+def shell_arrays(shell: Shell) -> dict[str, np.ndarray]:
+    """Return the shell state a resumed run needs to take the same steps (checkpoint arrays).
+
+    The warm start ``x_0 = x + (y_new - y) + eta_k`` needs ``x`` and the previous target
+    ``y``; the relative Newton tolerance needs the reference ``gradient_scale``; two-way
+    coupling needs the relaxed force ``force`` (the body's load).
+    """
+    return {"positions": shell.x, "target": shell.y,
+            "gradient_scale": np.array([shell.gradient_scale]), "force": shell.force}
+
+
+def restore_shell(shell: Shell, arrays: Mapping[str, np.ndarray]) -> None:
+    """Set the shell state from :func:`shell_arrays` of a checkpoint.
+
+    Raises:
+        InputError: an array is missing or has another shape (another shell).
+
+    """
+    for name in STATE_ARRAYS:
+        expected = (1,) if name == "gradient_scale" else shell.rest.shape
+        if name not in arrays or np.shape(arrays[name]) != expected:
+            raise InputError(f"checkpoint: shell array {name!r} is missing or not of shape "
+                             f"{expected} (another [shell] table?)")
+    shell.x, shell.y = np.array(arrays["positions"]), np.array(arrays["target"])
+    shell.force = np.array(arrays["force"])
+    shell.gradient_scale = float(arrays["gradient_scale"][0])
+
+
 def shell_frame(shell: Shell, t: float) -> ShellFrame:
     """Return the output fields of the current state."""
     return ShellFrame(t, shell.x - shell.rest, shell.energy.bending_density(shell.x))
@@ -340,14 +383,19 @@ def shell_frame(shell: Shell, t: float) -> ShellFrame:
 Writer = Callable[[int, float], None]
 
 
-def make_writer(shell: Shell, out: Path, comm: MPI.Comm,
-                writes: Callable[[int], bool]) -> Writer:
-    """Create ``shell.xdmf`` with the rest state (t = 0); return ``write(frame, t)``."""
+def make_writer(shell: Shell, out: Path, comm: MPI.Comm, writes: Callable[[int], bool],
+                resume_after: float | None = None, atomic: bool = True) -> Writer:
+    """Create ``shell.xdmf`` with the rest state (t = 0); return ``write(frame, t)``.
+
+    With ``resume_after`` (time [s] of the restored state) the existing series is continued
+    instead, without its steps after that time (collective: errors are raised on all ranks).
+    """
     if not shell.options.xdmf:
         return lambda frame, t: None
-    series = (ShellSeries(out / SHELL_XDMF_NAME, shell.rest, shell.topology.faces,
-                          shell.clusters.partition) if comm.rank == 0 else None)
-    if series is not None:
+    path, faces, cid = out / SHELL_XDMF_NAME, shell.topology.faces, shell.clusters.partition
+    series = on_root(comm, lambda: ShellSeries(path, shell.rest, faces, cid, resume_after,
+                                               atomic))
+    if series is not None and resume_after is None:
         series.write(shell_frame(shell, 0.0))
 
     def write(frame: int, t: float) -> None:
@@ -373,35 +421,28 @@ def _max_abs(comm: MPI.Comm, a: np.ndarray) -> float:
     return float(comm.allreduce(float(np.abs(a).max(initial=0.0)), op=MPI.MAX))
 
 
-@dataclass
-class CouplingState:
-    """The force fed back to the body in two-way coupling.
-
-    Attributes:
-        shell_force: ``(n, 3)`` penalty force on the target currently applied (relaxed).
-
-    """
-
-    shell_force: np.ndarray
+def apply_force(shell: Shell, body: Body) -> None:
+    """Make the shell's relaxed force ``shell.force`` the body's nodal load ``B^T f``."""
+    body.set_nodal_load(body_force_function(shell.embedding, shell.force, body.V))
 
 
-def feed_back(shell: Shell, body: CoupledBody, state: CouplingState) -> None:
+def feed_back(shell: Shell, body: Body) -> None:
     """Relax the penalty force of the current shell into the body's nodal load ``B^T f``."""
     omega = shell.options.coupling.relaxation
     f = penalty_force(shell.clusters.H, shell.params.k_P, shell.x, shell.y)
-    state.shell_force = (1.0 - omega) * state.shell_force + omega * f
-    body.set_nodal_force(body_force_function(shell.embedding, state.shell_force, body.V))
+    shell.force = (1.0 - omega) * shell.force + omega * f
+    apply_force(shell, body)
 
 
-def coupling_record(body: CoupledBody, state: CouplingState, iterations: int,
+def coupling_record(shell: Shell, body: Body, iterations: int,
                     change: float) -> StageRecord:
     """Two-way coupling numbers: iterations, last relative change, the two total forces."""
     return {"coupling_iterations": iterations, "coupling_change": change,
-            "coupling_force_shell": state.shell_force.sum(axis=0).tolist(),
-            "coupling_force_body": body.applied_force().tolist()}
+            "coupling_force_shell": shell.force.sum(axis=0).tolist(),
+            "coupling_force_body": body.applied_load().tolist()}
 
 
-def two_way_stage(shell: Shell, body: CoupledBody, steps: int,
+def two_way_stage(shell: Shell, body: Body, steps: int,
                   body_stage: Callable[[int], Mapping[str, Any]],
                   write: Writer) -> Callable[[int], StageRecord]:
     """Stage replacing body + shell: fixed point of body step <-> shell solve per frame.
@@ -411,7 +452,6 @@ def two_way_stage(shell: Shell, body: CoupledBody, steps: int,
     until ``max|u_k - u_{k-1}| <= rtol max|u_k|`` or ``max_iterations``.
     """
     opts, comm = shell.options.coupling, body.mesh.comm
-    state = CouplingState(np.zeros_like(shell.rest))
 
     def stage(frame: int) -> StageRecord:
         saved, x_start, y_start = body.snapshot(), shell.x.copy(), shell.y.copy()
@@ -420,7 +460,7 @@ def two_way_stage(shell: Shell, body: CoupledBody, steps: int,
         change, k = float("inf"), 0
         for k in range(1, opts.max_iterations + 1):  # noqa: B007  (k is reported)
             u_old = body.u.x.array.copy()
-            feed_back(shell, body, state)
+            feed_back(shell, body)
             body.restore(saved)
             shell.x, shell.y = x_start.copy(), y_start.copy()
             record = dict(body_stage(frame))
@@ -431,10 +471,103 @@ def two_way_stage(shell: Shell, body: CoupledBody, steps: int,
                 break
         write(frame, body.t)
         return {**record, **shell_record(shell, report),
-                **coupling_record(body, state, k, change)}
+                **coupling_record(shell, body, k, change)}
 
     return stage
 
 
-__all__ = ["Shell", "ShellOptions", "SkinOptions", "build_shell", "make_writer",
-           "one_way_stage", "shell_record", "solve_shell", "target", "two_way_stage"]
+def coupled_force(shell: Shell, body: Body) -> list[float]:
+    """Total force [N] of the implicit penalty term on the body, ``-sum_j (K u - c)_j``."""
+    term = penalty_term(shell.embedding, shell.clusters.H, shell.params.k_P,
+                        shell.x - shell.rest, body.V)
+    g = term.gradient(body.u.x.petsc_vec)
+    local = g.array.reshape(-1, 3).sum(axis=0)
+    for obj in (g, term.K, term.c):
+        obj.destroy()
+    return [-float(v) for v in body.mesh.comm.allreduce(local, op=MPI.SUM)]
+
+
+@dataclass
+class Aitken:
+    """Aitken's dynamic relaxation of a fixed-point iteration ``x -> G(x)``.
+
+    Irons & Tuck 1969; Kuettler & Wall 2008 for partitioned coupling.
+    With the residual ``r_k = G(x_k) - x_k`` the next iterate is ``x_k + omega_k r_k`` and
+
+        omega_k = -omega_{k-1} r_{k-1} . (r_k - r_{k-1}) / |r_k - r_{k-1}|^2,
+
+    (``omega_0 = 1``), the secant estimate of ``1 / (1 - lambda)`` for the dominant
+    eigenvalue ``lambda`` of the iteration: a slow linear contraction becomes fast.
+
+    Attributes:
+        omega: current relaxation factor.
+        residual: previous residual ``r_{k-1}`` (``None`` before the first step).
+
+    """
+
+    omega: float = 1.0
+    residual: np.ndarray | None = None
+
+    def relax(self, x: np.ndarray, gx: np.ndarray) -> np.ndarray:
+        """Return the relaxed next iterate from ``x_k`` and ``G(x_k)``."""
+        r = gx - x
+        if self.residual is not None:
+            dr = r - self.residual
+            denom = float(np.sum(dr * dr))
+            if denom > 0.0:
+                self.omega = -self.omega * float(np.sum(self.residual * dr)) / denom
+        self.residual = r
+        return x + self.omega * r
+
+
+def implicit_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mapping[str, Any]],
+                   write: Writer) -> Callable[[int], StageRecord]:
+    """Stage replacing body + shell: alternate minimisation of body and shell energies.
+
+    Iteration ``k`` redoes the frame's body steps from the saved state with the penalty of
+    the current shell ``x_{k-1}`` as an implicit quadratic term (:func:`penalty_term`), then
+    solves the shell for the new target: block Gauss-Seidel on the total energy
+    ``Pi(u) + W(x, y(u))``, each half-step a minimisation, so the total energy decreases
+    monotonically. Ends when ``max|u_k - u_{k-1}| <= rtol max|u_k|`` or ``max_iterations``.
+    The record's ``coupling_force_body`` is the term's total force on the body (equal to
+    ``coupling_force_shell = sum_i f_i`` since the rows of B sum to 1). With
+    ``coupling.aitken`` the shell iterate is relaxed by :class:`Aitken` between iterations
+    (the plain alternation contracts by ~0.95 per iteration on the 1000x-skin bar of
+    ``tests/test_followup_implicit_coupling.py``; 31 iterations with Aitken).
+    """
+    opts, comm = shell.options.coupling, body.mesh.comm
+
+    def stage(frame: int) -> StageRecord:
+        saved, change, k = body.snapshot(), float("inf"), 0
+        record: dict[str, Any] = {}
+        report = None
+        aitken = Aitken()
+        for k in range(1, opts.max_iterations + 1):  # noqa: B007  (k is reported)
+            x_in = shell.x.copy()
+            u_old = body.u.x.array.copy()
+            body.set_quadratic_energy(penalty_term(shell.embedding, shell.clusters.H,
+                                                   shell.params.k_P, shell.x - shell.rest,
+                                                   body.V))
+            body.restore(saved)
+            record = dict(body_stage(frame))
+            change = _max_abs(comm, body.u.x.array - u_old) / max(_max_abs(comm, body.u.x.array),
+                                                                 1e-300)
+            report = solve_shell(shell, target(shell, body), frame, comm, perturb=k == 1)
+            if change <= opts.rtol:
+                break
+            if opts.aitken:
+                shell.x = aitken.relax(x_in, shell.x)
+        assert report is not None  # max_iterations >= 1
+        shell.force = penalty_force(shell.clusters.H, shell.params.k_P, shell.x, shell.y)
+        write(frame, body.t)
+        return {**record, **shell_record(shell, report), "coupling_iterations": k,
+                "coupling_change": change,
+                "coupling_force_shell": shell.force.sum(axis=0).tolist(),
+                "coupling_force_body": coupled_force(shell, body)}
+
+    return stage
+
+
+__all__ = ["Shell", "ShellOptions", "SkinOptions", "apply_force", "build_shell", "make_writer",
+           "one_way_stage", "restore_shell", "shell_arrays", "shell_record", "solve_shell",
+           "target", "two_way_stage", "implicit_stage"]

@@ -24,7 +24,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from models.backend import MPI, PETSc
+from models.backend import MPI
 from models.errors import InputError, SolverError
 from solvers.decomposition.block import BlockOptions, BlockReport, BlockSolver, patch_colours
 from solvers.decomposition.patch_energy import PatchEnergy, ShellProblem
@@ -140,17 +140,6 @@ class NeighbourExchange:
             x[ids] = buffers[r]
 
 
-def start_petsc_log() -> None:
-    """Start PETSc's default log on every rank now.
-
-    ``solvers.linear`` calls ``PETSc.Log.begin()`` when a serial solver is first built; that
-    call is collective on PETSC_COMM_WORLD the first time, so ranks building their patch
-    solvers at different moments (Gauss-Seidel colours, rank-0-only solves) would deadlock.
-    Later calls return at once.
-    """
-    PETSc.Log.begin()
-
-
 def assign_patches(sizes: np.ndarray, n_ranks: int) -> np.ndarray:
     """Rank of each patch: largest patch first onto the least loaded rank (LPT)."""
     load = np.zeros(n_ranks)
@@ -235,7 +224,6 @@ def parallel_block_solve(problem: ShellProblem, partition: np.ndarray, x0: np.nd
     """
     opts = options or ParallelOptions()
     comm = comm if comm is not None else MPI.COMM_WORLD
-    start_petsc_log()
     patches = build_patches(problem.topology, partition, comm.size * opts.patches_per_rank)
     patch_rank = assign_patches(patches.sizes(), comm.size)
     mine = np.flatnonzero(patch_rank == comm.rank).tolist()

@@ -206,7 +206,9 @@ def backends_for(system: str, names: list[str], size: str, slow_max: str) -> lis
     """Backends that apply to ``system`` (no Cholesky on the indefinite augmented matrix)."""
     out = []
     for name in names:
-        opts = BACKENDS[name]
+        opts = BACKENDS.get(name)
+        if opts is None:  # augmented-only backend ("mumps-lu-aug"), added below
+            continue
         if system == "augmented" and opts.symmetric == "cholesky":
             continue
         if name in SLOW and SIZES[size][1] > SIZES[slow_max][1]:

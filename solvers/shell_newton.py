@@ -17,7 +17,15 @@ with Newton's method warm-started from the previous frame). Iteration k:
    previous iteration's shift / 10;
 4. backtracking line search: largest ``alpha = shrink^j`` with the Armijo condition
    ``W(x + alpha dx) <= W(x) + c1 alpha g . dx`` (plus a 16 eps |W| round-off allowance, so
-   the final quadratically convergent steps are not rejected for noise in W).
+   the final quadratically convergent steps are not rejected for noise in W);
+5. stagnation stop: when ``stagnation_iterations`` accepted steps in a row neither lowered W by
+   more than that round-off allowance nor reached a new smallest ``||g||``, the solve stops with
+   :class:`ShellSolveError` naming the worst stencil (the vertex of largest ``|g_i|`` and its
+   incident face of lowest rest quality). Measured on a rest sliver of quality 2.3e-3 (issue 8):
+   the iterate collapses the sliver to zero current area, where its normal (hence the hinge
+   angle) is undefined and ``||H||_1`` reaches 1.2e25; from then on every step is accepted only
+   inside the round-off allowance (alpha = 1.9e-6, W frozen at 40.08254400747074, ||g|| =
+   4.9e6) and, without this stop, the solve spun to ``max_iterations``.
 
 Near a nondegenerate minimum the unshifted Newton step is taken with alpha = 1 and the
 gradient norm converges quadratically, ``||g_{k+1}|| <= C ||g_k||^2``.
@@ -34,6 +42,7 @@ import scipy.sparse as sp
 
 from models.errors import InputError, SolverError
 from models.shell.assembly import HESSIAN_MODES
+from models.shell.rest import face_quality
 from solvers.linear import (
     AugmentedPenaltySolver,
     FactorReport,
@@ -41,6 +50,9 @@ from solvers.linear import (
     ShiftOptions,
     SparseDirectSolver,
 )
+
+ROUNDOFF_FACTOR: float = 16.0
+"""Round-off allowance of W, in units of ``eps |W|`` (line search and stagnation test)."""
 
 
 class EnergyEval(Protocol):
@@ -94,6 +106,9 @@ class ShellNewtonOptions:
             factorisations and non-descent directions).
         descent_tolerance: A direction is a descent direction if
             ``-g . dx >= descent_tolerance ||g|| ||dx||`` (cosine of the angle, dimensionless).
+        stagnation_iterations: Consecutive accepted steps without progress (W lowered by more
+            than ``ROUNDOFF_FACTOR eps |W|`` or a new smallest ``||g||``) before the solve stops
+            with :class:`ShellSolveError` naming the worst stencil.
 
     """
 
@@ -112,6 +127,7 @@ class ShellNewtonOptions:
     max_line_search: int = 40
     shift: ShiftOptions = field(default_factory=ShiftOptions)
     descent_tolerance: float = 1e-10
+    stagnation_iterations: int = 5
 
     def __post_init__(self) -> None:
         _positive_checks(self)
@@ -138,7 +154,7 @@ def _positive_checks(opts: ShellNewtonOptions) -> None:
             raise InputError(f"ShellNewtonOptions.{name}: must be finite and >= 0, got {value!r}")
     if opts.rtol == 0 and opts.atol == 0:
         raise InputError("ShellNewtonOptions.rtol: rtol and atol cannot both be 0")
-    for name in ("max_iterations", "max_line_search"):
+    for name in ("max_iterations", "max_line_search", "stagnation_iterations"):
         if getattr(opts, name) < 1:
             raise InputError(f"ShellNewtonOptions.{name}: must be >= 1, got "
                              f"{getattr(opts, name)!r}")
@@ -177,7 +193,8 @@ class ShellSolveReport:
 
     Attributes:
         converged: Gradient tolerance met.
-        reason: "gradient tolerance", "max_iterations", or the failure diagnostic.
+        reason: "gradient tolerance", "max_iterations", "stagnation", or the failure
+            diagnostic.
         iterations: Newton iterations performed (accepted steps).
         energy: Final W.
         grad_norm: Final ||g||.
@@ -267,6 +284,27 @@ class _Timers:
     """(factorise, analysis, solve) totals of the long-lived linear solvers at the start."""
 
 
+@dataclass
+class _Progress:
+    """Counts consecutive accepted steps without progress (stagnation test).
+
+    Attributes:
+        best_grad: Smallest ``||g||`` seen so far.
+        stalled: Consecutive steps that neither lowered W beyond round-off nor ``||g||``.
+
+    """
+
+    best_grad: float
+    stalled: int = 0
+
+    def update(self, w_old: float, w_new: float, grad_norm: float) -> int:
+        """Record one accepted step ``W: w_old -> w_new`` with new ``||g||``; return stalled."""
+        lowered = w_old - w_new > ROUNDOFF_FACTOR * np.finfo(float).eps * abs(w_old)
+        self.stalled = 0 if lowered or grad_norm < self.best_grad else self.stalled + 1
+        self.best_grad = min(self.best_grad, grad_norm)
+        return self.stalled
+
+
 @dataclass(frozen=True)
 class _Step:
     """An accepted Newton step."""
@@ -322,6 +360,32 @@ def _grad_norm(ev: EnergyEval) -> float:
     return float(np.linalg.norm(ev.grad))
 
 
+def worst_stencil(energy: object, grad: np.ndarray) -> str:
+    """Name the vertex of largest ``|g_i|`` and its incident face of lowest rest quality.
+
+    The face (quality ``4 sqrt(3) A / sum |e|^2``, :func:`models.shell.rest.face_quality`) is
+    named when ``energy`` has ``topology.faces`` and ``rest.positions`` (``ShellEnergy``).
+    """
+    per_vertex = np.linalg.norm(grad.reshape(-1, 3), axis=1)
+    v = int(np.argmax(per_vertex))
+    return f"vertex {v} (|g_i| = {per_vertex[v]:.3e})" + _worst_face(energy, v)
+
+
+def _worst_face(energy: object, vertex: int) -> str:
+    """``", face f [i, j, k] (rest quality q)"`` of the lowest-quality face of ``vertex``."""
+    faces = getattr(getattr(energy, "topology", None), "faces", None)
+    rest = getattr(getattr(energy, "rest", None), "positions", None)
+    if faces is None or rest is None:
+        return ""
+    faces = np.asarray(faces)
+    star = np.flatnonzero((faces == vertex).any(axis=1))
+    if star.size == 0:
+        return ""
+    q = face_quality(np.asarray(rest), faces[star])
+    f = int(star[np.argmin(q)])
+    return f", face {f} {faces[f].tolist()} (rest quality {q.min():.3e})"
+
+
 def _shift_candidates(previous: float, scale: float, shift: ShiftOptions) -> list[float]:
     """Shifts to try this iteration: 0 first, then the schedule, started near the last shift.
 
@@ -362,7 +426,8 @@ class ShellNewtonSolver:
         """Minimise W from ``x0`` ((n, 3) or flat); return ``(x (n, 3), report)``.
 
         Raises:
-            ShellSolveError: no direction/shift gave an Armijo step (carries best x, report).
+            ShellSolveError: no direction/shift gave an Armijo step, or the solve stagnated
+                (see ``stagnation_iterations``); carries the best x and the report.
             SolverError: W or its gradient is not finite at x0.
 
         """
@@ -377,6 +442,7 @@ class ShellNewtonSolver:
         switch = opts.switch_rtol * (opts.gradient_scale or _grad_norm(ev))
         if opts.far_hessian and _grad_norm(ev) <= switch:
             ev = self._evaluate(x, timers, opts.hessian)
+        progress = _Progress(_grad_norm(ev))
         while _grad_norm(ev) > tol:
             if len(history) >= self.options.max_iterations:
                 return x.reshape(-1, 3), self._report(False, "max_iterations", ev, tol,
@@ -391,8 +457,22 @@ class ShellNewtonSolver:
             history.append(step.record)
             x = step.x
             ev = self._evaluate(x, timers, self._mode(_grad_norm(ev), switch))
+            if progress.update(step.record.energy, ev.value, _grad_norm(ev)) \
+                    >= opts.stagnation_iterations:
+                self._stagnated(x, ev, tol, history, timers)
         return x.reshape(-1, 3), self._report(True, "gradient tolerance", ev, tol, history,
                                               timers)
+
+    def _stagnated(self, x: np.ndarray, ev: EnergyEval, tol: float,
+                   history: list[NewtonIteration], timers: _Timers) -> None:
+        """Raise :class:`ShellSolveError` for a stagnated solve, naming the worst stencil."""
+        assert ev.grad is not None  # order-2 evaluation
+        report = self._report(False, "stagnation", ev, tol, history, timers)
+        raise ShellSolveError(
+            f"shell Newton: no progress in {self.options.stagnation_iterations} iterations "
+            f"(W changes within round-off, ||g|| = {report.grad_norm:.3e} > {tol:.3e}); worst "
+            f"stencil: {worst_stencil(self.energy, ev.grad)}; {report.summary()}",
+            x.reshape(-1, 3), report)
 
     def _mode(self, grad_norm: float, switch: float) -> str:
         """Hessian mode of the next evaluation: ``far_hessian`` until ``||g|| <= switch``.
@@ -443,7 +523,7 @@ class ShellNewtonSolver:
                      timers: _Timers) -> tuple[float, float, int] | None:
         """Backtracking Armijo: ``(alpha, W(x + alpha dx), reductions)`` or None."""
         start = time.perf_counter()
-        noise = 16.0 * np.finfo(float).eps * abs(w0)
+        noise = ROUNDOFF_FACTOR * np.finfo(float).eps * abs(w0)
         alpha = 1.0
         try:
             for j in range(self.options.max_line_search):

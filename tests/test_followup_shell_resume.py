@@ -12,19 +12,14 @@ energies agree to solver tolerance (they are in fact bitwise equal).
 from __future__ import annotations
 
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
-from test_resume_kill import frames_done
-from test_shell_stage_cli import DEFAULT, REPO, read_series, run_cli
+from killrun import kill_after_frames
+from test_shell_stage_cli import DEFAULT, read_series, run_cli
 
 from wrinkles.output import complete_steps
 from wrinkles.shell_output import read_shell_series
@@ -43,17 +38,7 @@ def args(out: Path, *extra: str) -> list[str]:
 
 def start_and_kill(out: Path, after: int, delay: float, *extra: str) -> int:
     """Start the run, SIGKILL it ``delay`` s after ``after`` frames are done; frames done."""
-    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-    proc = subprocess.Popen([sys.executable, "-m", "wrinkles", *args(out, *extra)], cwd=REPO,
-                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 180
-    while frames_done(out) < after and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.005)
-    time.sleep(delay)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(timeout=30)
-    assert proc.returncode == -signal.SIGKILL, "the run ended before it could be killed"
-    return frames_done(out)
+    return kill_after_frames(args(out, *extra), out, after, delay)
 
 
 def assert_shell_series_intact(out: Path, at_least: int) -> int:

@@ -11,17 +11,13 @@ every step in the XML must be readable; the resumed run must then reproduce a st
 from __future__ import annotations
 
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
+from killrun import kill_after_frames
 from scipy.spatial import cKDTree
 from test_cli_run import read_series, wrinkles
 
@@ -71,28 +67,9 @@ def run_args(out: Path, *extra: str) -> list[str]:
     return ["run", str(scene), "--frames", str(FRAMES), "--out", str(out), *SETTINGS, *extra]
 
 
-def frames_done(out: Path) -> int:
-    """Completed frames according to ``summary.json`` (written atomically)."""
-    try:
-        return len(json.loads((out / "summary.json").read_text())["frames"])
-    except (OSError, ValueError, KeyError):
-        return 0
-
-
 def start_and_kill(out: Path, after: int, delay: float, *extra: str) -> int:
     """Start a run, SIGKILL it ``delay`` s after ``after`` frames are done; return frames done."""
-    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-    proc = subprocess.Popen([sys.executable, "-m", "wrinkles", *run_args(out, *extra)],
-                            cwd=REPO, env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 120
-    while frames_done(out) < after and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.005)
-    time.sleep(delay)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(timeout=30)
-    assert proc.returncode == -signal.SIGKILL, "the run ended before it could be killed"
-    return frames_done(out)
+    return kill_after_frames(run_args(out, *extra), out, after, delay, timeout=120)
 
 
 def assert_series_intact(out: Path, at_least: int) -> int:

@@ -124,6 +124,37 @@ def test_no_progress_raises_with_best_state() -> None:
     assert err.report.iterations == 0 and "no Armijo step" in str(err)
 
 
+class PlateauEnergy:
+    """W = 1 everywhere but grad = g0 != 0 (largest at vertex 2), Hessian I: every Newton step
+    is accepted only inside the round-off allowance and changes neither W nor g."""
+
+    n_vertices = 4
+    g0 = np.array([0.1, 0.0, 0.0, 0.0, 0.2, 0.0, 0.3, 0.4, 0.5, 0.0, 0.0, 0.1])
+
+    def value(self, x: np.ndarray) -> float:
+        return 1.0
+
+    def evaluate(self, x: np.ndarray, order: int = 2, hessian: str | None = None):
+        from models.shell.energy import ShellEval
+        return ShellEval(value=1.0, grad=self.g0.copy(), hess=sp.identity(12, format="csr"),
+                         penalty_factor=None)
+
+
+@pytest.mark.parametrize("k", [1, 5])
+def test_stagnation_stops_naming_worst_vertex(k: int) -> None:
+    opts = ShellNewtonOptions(stagnation_iterations=k, max_iterations=50,
+                              linear=LinearSolverOptions(backend="scipy"))
+    with pytest.raises(ShellSolveError) as info:
+        minimize(PlateauEnergy(), np.zeros((4, 3)), opts)
+    err, report = info.value, info.value.report
+    print(err)
+    # Armijo inside 16 eps |W| needs c1 alpha |g|^2 <= 3.55e-15: |g|^2 = 0.56, alpha = 2^-34
+    assert report.reason == "stagnation" and report.iterations == k and not report.converged
+    assert all(it.line_search_steps == 34 for it in report.history)
+    assert "vertex 2 (|g_i| = 7.071e-01)" in str(err)  # |(0.3, 0.4, 0.5)| = sqrt(0.5)
+    assert np.all(report.energies == 1.0) and np.all(np.isfinite(err.x))
+
+
 def test_max_iterations_returns_best_state() -> None:
     energy, pts = bent_plate_energy()
     x, report = minimize(energy, pts, ShellNewtonOptions(rtol=1e-12, max_iterations=3))
@@ -142,5 +173,7 @@ def test_option_validation() -> None:
         ShellNewtonOptions(augmented_linear=LinearSolverOptions(symmetric="cholesky"))
     with pytest.raises(InputError, match="ShellNewtonOptions.max_iterations"):
         ShellNewtonOptions(max_iterations=0)
+    with pytest.raises(InputError, match="ShellNewtonOptions.stagnation_iterations"):
+        ShellNewtonOptions(stagnation_iterations=0)
     with pytest.raises(InputError, match="x0"):
         minimize(bent_plate_energy()[0], np.zeros((3, 3)))

@@ -10,7 +10,24 @@ For rest positions ``X`` (Grinspun et al. 2003):
 * ``vertex_areas[v] = sum of A_f / 3`` over the faces of ``v`` (lumped, for densities).
 
 A face whose rest area is not larger than ``1e-14 * (longest edge)^2`` is degenerate and
-rejected with an :class:`InputError` naming it (never inf/NaN weights downstream).
+rejected with an :class:`InputError` naming it (never inf/NaN weights downstream). A sliver face,
+whose shape quality ``q = 4 sqrt(3) A / (|e0|^2 + |e1|^2 + |e2|^2)`` (1 for an equilateral
+triangle, 0 for a degenerate one) is below ``min_quality`` (default :data:`MIN_QUALITY`), is
+refused too, naming the face and its quality; pass ``min_quality=0`` to allow it.
+
+Why slivers below q = 1e-3 are refused (measured, issue 8, tests/test_extremes_matrix.py scene:
+level-2 subdivided box surface, 15 % compression, one face squashed): the normal of a sliver
+moves like ``|e| / (2 A)`` per unit vertex motion, so the bending Hessian grows like ``1 / q^2``
+(``||H(x0)||_1`` = 5.7e5 at q = 0.87, 1.0e8 at 2.3e-2, 1.1e10 at 2.3e-3, 1.1e16 at 2.3e-6;
+the hinge weights ``3 |e0|^2 / (A1 + A2)`` stay <= 10.7 since the neighbour is regular). The
+round-off floor of the gradient ``eps ||H|| ||x||`` (||x|| = 2.9) is 6.9e-6 at q = 2.3e-3 and,
+scaling like ``1 / q^2``, reaches the Newton tolerance ``rtol ||g0||`` = 3.2e-5 (rtol = 1e-8) at
+q ~ 1e-3; at q = 2.3e-6 it is ~7, far above the tolerance 3.5e-3: such a solve cannot converge
+in double precision. Accepted slivers (1e-3 <= q <~ 0.25) are not solved either in that scene:
+the first shifted Newton step reverses the sliver (its normal turns by 180 degrees: the edge
+springs barely see it), after which the iterate sits at the sliver's zero-area kink (current
+A / A0 ~ 1e-10 .. 1e-7, ``||H||_1`` up to 1.2e25) and the shell Newton stops by its stagnation
+test naming the face (``solvers/shell_newton.py``); q = 0.50 converged in 18 iterations.
 """
 
 from __future__ import annotations
@@ -27,6 +44,11 @@ from models.shell.topology import ShellTopology
 
 DEGENERATE_AREA_RATIO: float = 1e-14
 """A rest face with area <= this times its longest edge squared is rejected as degenerate."""
+
+MIN_QUALITY: float = 1e-3
+"""Default smallest rest quality ``4 sqrt(3) A / sum |e|^2`` accepted: below it the round-off
+floor of the gradient (bending Hessian ~ 1 / q^2) exceeds a 1e-8 relative Newton tolerance (see
+the module docstring)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,16 +74,25 @@ class RestState:
     vertex_areas: np.ndarray
 
     @classmethod
-    def from_positions(cls, topology: ShellTopology, x_rest: np.ndarray) -> RestState:
+    def from_positions(cls, topology: ShellTopology, x_rest: np.ndarray,
+                       min_quality: float = MIN_QUALITY) -> RestState:
         """Compute the rest state of ``topology`` at positions ``x_rest``.
 
+        Args:
+            topology: Shell connectivity.
+            x_rest: (n, 3) rest positions.
+            min_quality: Smallest accepted face quality ``4 sqrt(3) A / sum |e|^2`` in [0, 1)
+                (0 accepts every non-degenerate face).
+
         Raises:
-            InputError: wrong shape / non-finite positions, or a degenerate rest face.
+            InputError: wrong shape / non-finite positions, a degenerate rest face, or a face
+                of quality below ``min_quality``.
 
         """
         x = check_positions(x_rest, topology.n_vertices, "x_rest")
         areas = face_areas(x, topology.faces)
         _check_degenerate(x, topology.faces, areas)
+        _check_quality(x, topology.faces, min_quality)
         e = x[topology.edges[:, 1]] - x[topology.edges[:, 0]]
         vertex_areas = np.bincount(topology.faces.ravel(), weights=np.repeat(areas / 3.0, 3),
                                    minlength=topology.n_vertices)
@@ -76,10 +107,35 @@ def face_areas(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(x[faces[:, 1]] - p0, x[faces[:, 2]] - p0), axis=1)
 
 
+def _squared_edges(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F, 3) squared edge lengths of every face."""
+    p = x[faces]
+    return np.sum((p - np.roll(p, 1, axis=1)) ** 2, axis=2)
+
+
+def face_quality(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Shape quality ``q = 4 sqrt(3) A / (|e0|^2 + |e1|^2 + |e2|^2)`` in [0, 1] per face.
+
+    q = 1 for an equilateral triangle and q -> 0 for a sliver (q ~ A / l^2 when A << l^2).
+    """
+    return 4.0 * np.sqrt(3.0) * face_areas(x, faces) / np.sum(_squared_edges(x, faces), axis=1)
+
+
+def _check_quality(x: np.ndarray, faces: np.ndarray, min_quality: float) -> None:
+    """Raise InputError naming the worst face when its quality is below ``min_quality``."""
+    if not (np.isfinite(min_quality) and 0 <= min_quality < 1):
+        raise InputError(f"min_quality: must be in [0, 1), got {min_quality!r}")
+    q = face_quality(x, faces)
+    f = int(np.argmin(q)) if q.size else 0
+    if q.size and q[f] < min_quality:
+        raise InputError(f"x_rest: face {f} {faces[f].tolist()} is a sliver (quality "
+                         f"4 sqrt(3) A / sum |e|^2 = {q[f]:.3e} < min_quality = "
+                         f"{min_quality:g}; pass min_quality=0 to allow it)")
+
+
 def _check_degenerate(x: np.ndarray, faces: np.ndarray, areas: np.ndarray) -> None:
     """Raise InputError naming the first face with (numerically) zero rest area."""
-    p = x[faces]
-    longest2 = np.max(np.sum((p - np.roll(p, 1, axis=1)) ** 2, axis=2), axis=1)
+    longest2 = np.max(_squared_edges(x, faces), axis=1)
     bad = np.flatnonzero(~(areas > DEGENERATE_AREA_RATIO * longest2))
     if bad.size:
         f = bad[0]

@@ -89,7 +89,11 @@ def render_frame(mesh: Any, path: Path, clim: tuple[float, float], options: Rend
                  camera: Any | None = None) -> Any:
     """Render one PolyData off-screen into ``path``; return the camera used (reuse it)."""
     import pyvista as pv
+    from vtkmodules.vtkCommonCore import vtkLogger
 
+    # Without a display VTK falls back to off-screen rendering but first logs a warning ("bad X
+    # server connection") that reads like an error; keep its stderr log to real errors.
+    vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_ERROR)
     plotter: Any = pv.Plotter(off_screen=True, window_size=[options.width, options.height])
     floor = 10.0 ** clim[0] if options.log_scale else 0.0
     scalars = colour_values(mesh.point_data["bending_energy_density"], options, floor)

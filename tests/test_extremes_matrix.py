@@ -58,7 +58,10 @@ RESULTS = REPO / "benchmarks" / "results" / "extremes.json"
 L = 0.1
 """Edge of the body cube [m]."""
 MAX_IT = 30
-"""Newton iterations allowed per body solve."""
+"""Newton iterations allowed per body solve (the SNES cap)."""
+MAX_IT_MEASURED = 12
+"""Bound asserted on the most Newton iterations of one body solve in any case (measured: 10,
+for nu = 0.499); below the cap so that the assertion can fail."""
 ENERGY_BAND = 1e-10
 """Allowed energy increase per Newton iteration, relative to ``|Pi| + (mu + lambda)|Omega|``."""
 ROWS: list[dict[str, Any]] = []
@@ -154,7 +157,7 @@ def check_body(row: dict[str, Any], body: Body, halvings_allowed: bool = False) 
     assert np.all(np.isfinite(body.u.x.array)) and np.all(np.isfinite(body.v.x.array))
     assert math.isfinite(row["energy"]) and row["min_det_f"] > 0.0
     assert row["worst_energy_increase"] <= ENERGY_BAND, row
-    assert row["max_iterations"] <= MAX_IT
+    assert row["max_iterations"] <= MAX_IT_MEASURED
     if not halvings_allowed:
         assert row["halvings"] == 0, row
 
@@ -209,8 +212,11 @@ def test_body_time_step(dynamics, dt):
     check_body(row, b)
     fall = -0.5 * 9.81 * (3 * dt) ** 2
     z = float(b.u.x.array.reshape(-1, 3)[:, 2].mean())
-    if 3 * dt < math.sqrt(2 * 0.01 / 9.81):  # still in free fall: u_z = -g t^2 / 2 (+ O(dt))
-        assert z == pytest.approx(fall, rel=0.5 if dynamics == "implicit_euler" else 1e-6)
+    if 3 * dt < math.sqrt(2 * 0.01 / 9.81):  # still in free fall
+        # discrete free fall after 3 steps: implicit Euler u_3 = -(1+2+3) g dt^2 = -6 g dt^2,
+        # Newmark (average acceleration) the exact -g t^2 / 2 = -4.5 g dt^2
+        expected = -6.0 * 9.81 * dt**2 if dynamics == "implicit_euler" else fall
+        assert z == pytest.approx(expected, rel=1e-6)
     elif dynamics == "implicit_euler":  # landed, damped: on (slightly into) the ground
         assert -0.02 < z < -0.005
     else:  # Newmark keeps the energy: it may bounce back up, but stays bounded
@@ -274,13 +280,14 @@ def test_body_near_degenerate_tets(flatness):
     tet = structured_box((3, 3, 3), (L, L, L))
     measured = quality(pts, np.asarray(tet.tets))
     name = f"body sliver tet q={flatness:g}"
-    try:
-        mesh = cube_mesh(pts)
-    except InputError as exc:
+    if flatness < 1e-8:  # below the validator's tolerance: must be refused, naming the tet
+        with pytest.raises(InputError, match="degenerate") as info:
+            cube_mesh(pts)
         ROWS.append({"case": name, "group": "degenerate", "outcome": "refused",
-                     "quality": measured, "message": str(exc)})
-        assert flatness < 1e-8 and "degenerate" in str(exc) and "tet" in str(exc)
+                     "quality": measured, "message": str(info.value)})
+        assert "tet" in str(info.value)
         return
+    mesh = cube_mesh(pts)
     b = body(Material(E=1e4, nu=0.3), BodyOptions(dynamics="static", dt=1.0,
                                                   gravity=(0, 0, 0), pins=press_pins(-0.1 * L)),
              mesh)
@@ -387,7 +394,7 @@ def test_shell_penalty_to_bending_ratio(k_B, k_P):
     energy, x0 = shell_case(params)
     name = f"shell kP/kB={k_P / k_B:.0e} kB={k_B:g}"
     row, x = run_shell(name, "penalty", energy, x0, {"k_B": k_B, "k_P": k_P})
-    check_shell(row, x, max_iterations=60 if k_P / k_B < 1e9 else 100)
+    check_shell(row, x, max_iterations=60 if k_P / k_B < 1e9 else 90)  # measured max 77
 
 
 @pytest.mark.parametrize("levels", [0, 1, 2, 3, 4])
@@ -438,7 +445,7 @@ def test_shell_sliver_accepted_stops_cleanly(flatness):
                  "max_iterations": report.iterations, "shifted": report.shifted_iterations,
                  "energy": report.energy, "grad_norm": report.grad_norm,
                  "message": str(err).splitlines()[0]})
-    assert report.reason == "stagnation" and report.iterations < 100
+    assert report.reason == "stagnation" and report.iterations <= 70  # measured 58 / 41
     assert "face 26 [88, 90, 4]" in str(err) and "vertex 4" in str(err)
     assert np.all(np.isfinite(err.x)) and report.grad_norm > 1e3 * report.tolerance
     e = report.energies

@@ -86,21 +86,18 @@ def test_quadratic_term_taylor(implicit):
         shell.params.k_P * float(np.sum(hd * hd)), rel=1e-9)
 
 
-def test_implicit_converges_and_conserves_force(implicit):
+def test_implicit_converges(implicit):
+    """The implicit scheme reaches the coupling fixed point with a converged shell; force
+    conservation is checked with a real net force in the next test (at the converged state
+    the net penalty force is ~0, so a sum check there would prove nothing)."""
     rec = implicit.records[-1].details
     shell = implicit.shell
     assert shell is not None
-    f = penalty_force(shell.clusters.H, shell.params.k_P, shell.x, shell.y)
-    scale = np.abs(f).sum()
-    diff = np.subtract(rec["coupling_force_shell"], rec["coupling_force_body"])
     print("implicit: coupling iterations", rec["coupling_iterations"], "change",
-          rec["coupling_change"], "force shell", rec["coupling_force_shell"], "force body",
-          rec["coupling_force_body"], "scale", scale, "newton", rec.get("newton_iterations"))
+          rec["coupling_change"], "newton", rec.get("newton_iterations"))
     assert rec["coupling_change"] <= 1e-6
     assert rec["coupling_iterations"] < MAX_IT
     assert rec["shell_converged"]
-    assert np.abs(diff).max() <= 1e-10 * scale
-
 
 
 def test_term_force_equals_penalty_force_sum(implicit):
@@ -120,15 +117,11 @@ def test_term_force_equals_penalty_force_sum(implicit):
 
 
 def test_explicit_scheme_fails_on_the_same_frame(tmp_path):
-    """Measured reference: the lagged-force scheme does not converge on this frame."""
-    try:
-        run = run_scheme(tmp_path, "explicit")
-    except SolverError as exc:
-        print("explicit: body step failed:", str(exc)[:200])
-        return
-    rec = run.records[-1].details
-    print("explicit: iterations", rec["coupling_iterations"], "change", rec["coupling_change"])
-    assert rec["coupling_change"] > 1e-6
+    """Measured reference: with the lagged force the shell solve of this frame stops making
+    progress (stagnation), so the explicit scheme raises where the implicit one converges."""
+    with pytest.raises(SolverError, match="shell solve failed") as info:
+        run_scheme(tmp_path, "explicit")
+    print("explicit:", str(info.value)[:200])
 
 
 def test_plain_alternation_is_stable_but_slow(tmp_path):
@@ -137,4 +130,4 @@ def test_plain_alternation_is_stable_but_slow(tmp_path):
     rec = run_scheme(tmp_path, "implicit", aitken=False, max_iterations=30).records[-1].details
     print("implicit without Aitken: iterations", rec["coupling_iterations"], "change",
           rec["coupling_change"])
-    assert 1e-6 < rec["coupling_change"] < 2e-3
+    assert 4e-4 < rec["coupling_change"] < 7e-4  # measured 5.36e-4

@@ -60,7 +60,7 @@ def test_demo_writes_consistent_body_and_shell_series(demo):
     # the moving end is pinned at -0.02 m/unit * 0.8 = -16 mm in x; the shell moved with the
     # body up to its wrinkles/sliding in the null space of H (measured -17.1 mm)
     assert body_steps[-1][1]["displacement"][:, 0].min() == pytest.approx(-0.016, abs=1e-12)
-    assert steps[-1][1]["displacement"][:, 0].min() == pytest.approx(-0.016, rel=0.15)
+    assert steps[-1][1]["displacement"][:, 0].min() == pytest.approx(-0.016, rel=0.1)
     summary = json.loads((demo / "summary.json").read_text())
     frames = summary["frames"]
     assert len(frames) == 2 and summary["run"]["status"] == "completed"

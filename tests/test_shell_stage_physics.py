@@ -66,9 +66,9 @@ def test_rigid_translation_is_followed_exactly(tmp_path):
     assert np.abs(shell.y - (shell.rest + d)).max() < 1e-12
     assert record["shell_converged"]
     # measured: 4.2e-14 m (edge 7.2e-3 m, start perturbation ~7e-6 m), W = 5.8e-25 J
-    assert record["wrinkle_amplitude"] < 1e-10
-    assert record["max_distance_to_target"] < 1e-10
-    assert record["shell_energy"] < 1e-16
+    assert record["wrinkle_amplitude"] < 1e-12
+    assert record["max_distance_to_target"] < 1e-12
+    assert record["shell_energy"] < 1e-20
 
 
 @pytest.fixture(scope="module")
@@ -126,7 +126,8 @@ def test_compressed_bar_wrinkles(tmp_path, stretched):
     amplitude = records[-1]["wrinkle_amplitude_rel"]
     print("wrinkle amplitude / edge per frame", [r["wrinkle_amplitude_rel"] for r in records])
     assert all(r["shell_converged"] for r in records)
-    assert amplitude > 0.1
+    assert amplitude > 0.4  # measured 0.66 edge lengths
     assert run.shell is not None
-    assert lateral_normal_deviation(run.shell) > 3.0 * lateral_normal_deviation(stretched.shell)
+    # measured ratio 35: compression wrinkles the lateral faces, stretch does not
+    assert lateral_normal_deviation(run.shell) > 15.0 * lateral_normal_deviation(stretched.shell)
     assert records[-1]["shell_terms"]["bending"] > 0.0

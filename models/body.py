@@ -244,6 +244,7 @@ class Body:
         self._inertia = dolfinx.fem.Constant(mesh, 0.0)
         self.gravity = dolfinx.fem.Constant(mesh, np.array(self.options.gravity))
         self.load = self._function("nodal_load_density")
+        self._load_forms: list[Any] | None = None
         self._mass_ksp: Any = None
         self._term: QuadraticTerm | None = None
         self.contacts = [PenaltyContact(c, mesh, material.E) for c in self.options.contacts]
@@ -365,8 +366,9 @@ class Body:
 
     def applied_load(self) -> np.ndarray:
         """Total force ``int g dX`` [N] of the nodal load (3,); equals ``sum_j F_j``."""
-        return np.array([global_scalar(dolfinx.fem.form(self.load[k] * self.dx))
-                         for k in range(3)])
+        if self._load_forms is None:
+            self._load_forms = [dolfinx.fem.form(self.load[k] * self.dx) for k in range(3)]
+        return np.array([global_scalar(form) for form in self._load_forms])
 
     def _mass_solver(self) -> Any:
         """LU solver of the vector mass matrix (built once, same quadrature as the energy)."""

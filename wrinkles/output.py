@@ -25,6 +25,7 @@ file + ``os.replace``) after every frame.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -337,8 +338,9 @@ ET.register_namespace("xi", XI[1:-1])
 # Summary JSON
 
 
+@functools.cache
 def package_versions() -> dict[str, str]:
-    """Versions of Python, PETSc, dolfinx and the scientific packages of this run."""
+    """Versions of Python, PETSc, dolfinx and the scientific packages (computed once per run)."""
     versions = {"python": platform.python_version(), "dolfinx": dolfinx.__version__,
                 "petsc": ".".join(str(v) for v in PETSc.Sys.getVersion()),
                 "petsc4py": str(getattr(sys.modules.get("petsc4py"), "__version__", "?")),
@@ -361,7 +363,7 @@ def write_json_atomic(path: Path, data: Any) -> None:
 def summary_document(scene: Mapping[str, Any], run: Mapping[str, Any],
                      frames: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """Assemble the summary: scene, versions, run facts and frame records (JSON-able)."""
-    return {"scene": dict(scene), "versions": package_versions(), "run": dict(run),
+    return {"scene": dict(scene), "versions": dict(package_versions()), "run": dict(run),
             "frames": [dict(f) for f in frames]}
 
 

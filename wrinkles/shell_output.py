@@ -17,7 +17,6 @@ node attributes; ParaView and ``meshio.xdmf.TimeSeriesReader`` read it.
 
 from __future__ import annotations
 
-import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +25,13 @@ import h5py
 import numpy as np
 
 from models.errors import InputError
-from wrinkles.output import WORK_DIR, begin_frame, commit_frame, drop_steps_after
+from wrinkles.output import (
+    WORK_DIR,
+    begin_frame,
+    commit_frame,
+    drop_steps_after,
+    write_xml_atomic,
+)
 
 SHELL_XDMF_NAME = "shell.xdmf"
 FIELD_TYPES: dict[str, str] = {"displacement": "Vector", "bending_energy_density": "Scalar"}
@@ -143,11 +148,7 @@ class ShellSeries:
                                    CollectionType="Temporal")
         for index in range(len(self.times)):
             self._grid(collection, index)
-        tree = ET.ElementTree(root)
-        ET.indent(tree, "  ")
-        tmp = self.path.with_name(f".{self.path.name}.tmp")
-        tree.write(tmp, xml_declaration=True, encoding="utf-8")
-        os.replace(tmp, self.path)
+        write_xml_atomic(ET.ElementTree(root), self.path)
 
 
 def read_shell_series(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray,

@@ -421,6 +421,11 @@ def _max_abs(comm: MPI.Comm, a: np.ndarray) -> float:
     return float(comm.allreduce(float(np.abs(a).max(initial=0.0)), op=MPI.MAX))
 
 
+def _relative_change(comm: MPI.Comm, new: np.ndarray, old: np.ndarray) -> float:
+    """Coupling change ``max|new - old| / max|new|`` over all ranks."""
+    return _max_abs(comm, new - old) / max(_max_abs(comm, new), 1e-300)
+
+
 def apply_force(shell: Shell, body: Body) -> None:
     """Make the shell's relaxed force ``shell.force`` the body's nodal load ``B^T f``."""
     body.set_nodal_load(body_force_function(shell.embedding, shell.force, body.V))
@@ -464,8 +469,7 @@ def two_way_stage(shell: Shell, body: Body, steps: int,
             body.restore(saved)
             shell.x, shell.y = x_start.copy(), y_start.copy()
             record = dict(body_stage(frame))
-            change = _max_abs(comm, body.u.x.array - u_old) / max(_max_abs(comm, body.u.x.array),
-                                                                 1e-300)
+            change = _relative_change(comm, body.u.x.array, u_old)
             report = solve_shell(shell, target(shell, body), frame, comm)
             if change <= opts.rtol:
                 break
@@ -550,8 +554,7 @@ def implicit_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mapping
                                                    body.V))
             body.restore(saved)
             record = dict(body_stage(frame))
-            change = _max_abs(comm, body.u.x.array - u_old) / max(_max_abs(comm, body.u.x.array),
-                                                                 1e-300)
+            change = _relative_change(comm, body.u.x.array, u_old)
             report = solve_shell(shell, target(shell, body), frame, comm, perturb=k == 1)
             if change <= opts.rtol:
                 break

@@ -1,9 +1,11 @@
-# Two commands on a fresh machine: `make demo` (run the default scene) and `make test`.
+# Two commands on a fresh machine: `make demo` (the draft's experiment, a ball dropped on a sofa,
+# coarse variant) and `make test`.
 # Each builds .venv first when it is missing or when the pins changed.
 VENV    := .venv
 PY      := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed
 OUT     ?= out/demo
+SCENE   ?= scenes/ball_sofa_coarse.toml
 PYTEST_ARGS ?=
 export OMP_NUM_THREADS ?= 1
 export OPENBLAS_NUM_THREADS ?= 1
@@ -23,7 +25,7 @@ $(STAMP): requirements.lock pyproject.toml tools/find_python.sh
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/wrinkles run scenes/default.toml --out $(OUT)
+	$(VENV)/bin/wrinkles run $(SCENE) --out $(OUT)
 
 test: $(STAMP)
 	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
@@ -38,6 +40,11 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/shell_kernels.py
 	$(PY) benchmarks/shell_solve.py
+
+# Regenerate figures, tables and paper/build/paper.md (PAPER_ARGS=--quick for CI; see paper/README.md)
+PAPER_ARGS ?=
+paper: $(STAMP)
+	$(PY) paper/make_paper.py $(PAPER_ARGS)
 
 lock: $(STAMP)
 	$(PY) -m pip freeze --exclude-editable | grep -v '^wrinkles' > requirements.lock.new && mv requirements.lock.new requirements.lock

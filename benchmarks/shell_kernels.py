@@ -11,10 +11,18 @@ For regular (icosphere) and irregular (jittered Delaunay plate) shells of about 
   Hessian "low_rank" and, up to ``--assembled-max`` vertices, "assembled");
 * topology / pattern build times and the process peak RSS after each mesh.
 
+Each mesh is renumbered by every method of ``--reorder`` (:mod:`models.shell.reorder`;
+default "none rcm" to show the effect of the locality ordering). ``x tgt`` is the ratio to
+the targets of issue 3: 3 us per vertex for energy + gradient + Hessian of all terms (the
+full ``evaluate``, assembly included), 1 us per non-zero 3x3 block for the assembly. The
+full evaluate is timed with the flip barrier on (the ShellParams default, ``k_F = 1e3``) and
+off (``k_F = 0``: membrane + bending + penalty, the terms the target names).
+
 Usage::
 
     python benchmarks/shell_kernels.py --quick           # 10k only (while developing)
-    python benchmarks/shell_kernels.py --sizes 10k 40k 160k 640k
+    python benchmarks/shell_kernels.py --sizes 10k 40k 160k 640k --assembled-max 0
+    python benchmarks/shell_kernels.py --sizes 40k --clock cpu   # on a shared machine
 
 Prints a table and writes benchmarks/results/shell_kernels.json.
 """
@@ -30,6 +38,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -45,21 +54,31 @@ from models.shell.bending import hinge_bending  # noqa: E402
 from models.shell.energy import ShellEnergy, ShellParams  # noqa: E402
 from models.shell.membrane import area_membrane, edge_membrane  # noqa: E402
 from models.shell.penalty import PenaltyOperator, penalty_term  # noqa: E402
+from models.shell.reorder import REORDER_METHODS, reorder_mesh  # noqa: E402
 from models.shell.rest import RestState  # noqa: E402
 from models.shell.topology import ShellTopology  # noqa: E402
 
 SIZES = {"10k": (5, 10_000), "40k": (6, 40_000), "160k": (7, 160_000), "640k": (8, 640_000)}
 RESULTS = Path(__file__).resolve().parent / "results" / "shell_kernels.json"
+TARGET_US_PER_VERTEX = 3.0
+TARGET_US_PER_BLOCK = 1.0
+
+
+CLOCKS: dict[str, Callable[[], float]] = {"wall": time.perf_counter, "cpu": time.process_time}
+"""``--clock``: wall time (quiet machine) or the process CPU time, which leaves out the time
+the process waits for a core on a shared machine (not the cache / memory-bandwidth contention)."""
+_clock: list[Callable[[], float]] = [time.perf_counter]
 
 
 def best_time(fn: Callable[[], object], repeat: int) -> float:
-    """Best wall time of ``repeat`` calls after one warm-up call (seconds)."""
+    """Best time of ``repeat`` calls after one warm-up call (seconds, ``--clock``)."""
     fn()
+    clock = _clock[0]
     times = []
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0 = clock()
         fn()
-        times.append(time.perf_counter() - t0)
+        times.append(clock() - t0)
     return min(times)
 
 
@@ -88,17 +107,18 @@ def cluster_matrix(x: np.ndarray, rest: RestState, support: int, overlap: float,
     return sp.diags(1.0 / np.asarray(w.sum(axis=1)).ravel()) @ w
 
 
-def make_mesh(kind: str, size: str) -> tuple[np.ndarray, np.ndarray]:
-    """Regular icosphere or irregular plate of the requested size."""
+def make_mesh(kind: str, size: str, reorder: str) -> tuple[np.ndarray, np.ndarray]:
+    """Regular icosphere or irregular plate of the requested size, renumbered by ``reorder``."""
     level, n = SIZES[size]
-    return icosphere(level) if kind == "regular" else irregular_plate(n, seed=1)
+    points, faces = icosphere(level) if kind == "regular" else irregular_plate(n, seed=1)
+    return reorder_mesh(points, faces, reorder)[:2]
 
 
 def time_terms(x: np.ndarray, top: ShellTopology, rest: RestState, op: PenaltyOperator,
                repeat: int) -> dict[str, dict[str, float]]:
     """Seconds per call of each term at orders 0, 1, 2 (penalty: orders 0, 1)."""
     w = rest.hinge_weights
-    terms: dict[str, Callable[[int], object]] = {
+    terms: dict[str, Callable[[int], Any]] = {
         "membrane_edge": lambda o: edge_membrane(x, top.edges, rest.rest_lengths, order=o),
         "membrane_area": lambda o: area_membrane(x, top.faces, rest.rest_areas, order=o),
         "bending": lambda o: hinge_bending(x, top.hinges, rest.rest_angles, w, order=o),
@@ -106,7 +126,8 @@ def time_terms(x: np.ndarray, top: ShellTopology, rest: RestState, op: PenaltyOp
     }
     out: dict[str, dict[str, float]] = {}
     for name, fn in terms.items():
-        out[name] = {f"order{o}": best_time(lambda fn=fn, o=o: fn(o), repeat) for o in (0, 1, 2)}
+        out[name] = {f"order{o}": best_time(lambda fn=fn, o=o: fn(o), repeat)  # type: ignore[misc]
+                     for o in (0, 1, 2)}
     return out
 
 
@@ -116,8 +137,8 @@ def time_assembly(x: np.ndarray, top: ShellTopology, rest: RestState,
     t0 = time.perf_counter()
     pattern = StencilPattern.from_stencils([top.edges, top.hinges], top.n_vertices)
     build = time.perf_counter() - t0
-    blocks = [edge_membrane(x, top.edges, rest.rest_lengths).blocks,
-              hinge_bending(x, top.hinges, rest.rest_angles, rest.hinge_weights).blocks]
+    blocks: list[Any] = [edge_membrane(x, top.edges, rest.rest_lengths).blocks,
+                         hinge_bending(x, top.hinges, rest.rest_angles, rest.hinge_weights).blocks]
     contributions = list(zip(pattern.maps, blocks, strict=True))
     t = best_time(lambda: assemble(pattern, contributions), repeat)
     return {"pattern_build_s": build, "assemble_s": t, "n_blocks": pattern.n_blocks,
@@ -125,20 +146,24 @@ def time_assembly(x: np.ndarray, top: ShellTopology, rest: RestState,
 
 
 def time_energy(x: np.ndarray, top: ShellTopology, rest: RestState, h: sp.csr_matrix,
-                mode: str, hessian_modes: list[str], repeat: int) -> dict[str, float]:
-    """Setup and evaluate(order=2) time of the full energy (W_L + W_B + W_P) per Hessian mode."""
+                mode: str, hessian_modes: list[str], repeat: int,
+                k_F: float = 1e3) -> dict[str, float]:
+    """Setup and evaluate(order=2) time of the full energy (W_L + W_B + W_P [+ W_F])."""
     t0 = time.perf_counter()
-    energy = ShellEnergy(top, rest, ShellParams(penalty_hessian=mode), H=h)  # type: ignore[arg-type]
-    out = {"setup_s": time.perf_counter() - t0, "n_blocks": energy.pattern.n_blocks}
+    params = ShellParams(penalty_hessian=mode, k_F=k_F)  # type: ignore[arg-type]
+    energy = ShellEnergy(top, rest, params, H=h)
+    out = {"setup_s": time.perf_counter() - t0, "n_blocks": energy.pattern.n_blocks, "k_F": k_F}
     for hm in hessian_modes:
-        t = best_time(lambda hm=hm: energy.evaluate(x, order=2, hessian=hm), repeat)
+        t = best_time(lambda hm=hm: energy.evaluate(x, order=2, hessian=hm),  # type: ignore[misc]
+                      repeat)
         out[f"{hm}_us_per_vertex"] = 1e6 * t / top.n_vertices
     return out
 
 
-def bench_one(kind: str, size: str, args: argparse.Namespace) -> dict[str, object]:
+def bench_one(kind: str, size: str, reorder: str,
+              args: argparse.Namespace) -> dict[str, object]:
     """All measurements for one mesh."""
-    p, f = make_mesh(kind, size)
+    p, f = make_mesh(kind, size, reorder)
     t0 = time.perf_counter()
     top = ShellTopology.from_faces(f, len(p))
     t_top = time.perf_counter() - t0
@@ -149,12 +174,14 @@ def bench_one(kind: str, size: str, args: argparse.Namespace) -> dict[str, objec
     n = top.n_vertices
     terms = time_terms(x, top, rest, PenaltyOperator.from_matrix(h, n), args.repeat)
     rec: dict[str, object] = {
-        "kind": kind, "size": size, "n_vertices": n, "n_edges": top.n_edges,
+        "kind": kind, "size": size, "reorder": reorder, "n_vertices": n, "n_edges": top.n_edges,
         "n_faces": top.n_faces, "n_hinges": int(top.hinges.shape[0]), "topology_s": t_top,
         "terms_us_per_vertex": {k: {o: 1e6 * v / n for o, v in d.items()}
                                 for k, d in terms.items()},
         "assembly": time_assembly(x, top, rest, args.repeat),
         "energy_low_rank": time_energy(x, top, rest, h, "low_rank", args.modes, args.repeat),
+        "energy_low_rank_no_barrier": time_energy(x, top, rest, h, "low_rank", args.modes[:1],
+                                                  args.repeat, k_F=0.0),
         "n_clusters": h.shape[0], "H_nnz": h.nnz,
     }
     if n <= args.assembled_max:
@@ -164,24 +191,25 @@ def bench_one(kind: str, size: str, args: argparse.Namespace) -> dict[str, objec
     return rec
 
 
-def print_row(r: dict[str, object]) -> None:
+def print_row(r: dict[str, Any]) -> None:
     """One table block per mesh."""
     t = r["terms_us_per_vertex"]
     a = r["assembly"]
-    print(f"\n{r['kind']:>9} {r['size']:>5} n={r['n_vertices']:>7} "
+    print(f"\n{r['kind']:>9} {r['size']:>5} reorder {r['reorder']:<6} n={r['n_vertices']:>7} "
           f"topology {r['topology_s']:.2f} s  peak RSS {r['peak_rss_mib']:.0f} MiB")
     print(f"  {'term':<14}{'value':>10}{'+grad':>10}{'+hess':>10}   (us / vertex)")
-    for name, d in t.items():  # type: ignore[union-attr]
+    for name, d in t.items():
         print(f"  {name:<14}{d['order0']:>10.3f}{d['order1']:>10.3f}{d['order2']:>10.3f}")
-    print(f"  assembly: {a['n_blocks']} blocks, {a['assemble_s'] * 1e3:.1f} ms = "  # type: ignore[index]
-          f"{a['us_per_block']:.3f} us/block; pattern build {a['pattern_build_s']:.2f} s")  # type: ignore[index]
-    for key in ("energy_low_rank", "energy_assembled"):
+    print(f"  assembly: {a['n_blocks']} blocks, {a['assemble_s'] * 1e3:.1f} ms = "
+          f"{a['us_per_block']:.3f} us/block (x tgt {a['us_per_block'] / TARGET_US_PER_BLOCK:.2f});"
+          f" pattern build {a['pattern_build_s']:.2f} s")
+    for key in ("energy_low_rank", "energy_low_rank_no_barrier", "energy_assembled"):
         e = r.get(key)
         if not isinstance(e, dict):
             continue
-        modes = ", ".join(f"{k[:-14]} {v:.3f}" for k, v in e.items()
-                          if k.endswith("_us_per_vertex"))
-        print(f"  evaluate(order=2) penalty {key[7:]:<9}: {modes} us/vertex "
+        modes = ", ".join(f"{k[:-14]} {v:.3f} (x tgt {v / TARGET_US_PER_VERTEX:.2f})"
+                          for k, v in e.items() if k.endswith("_us_per_vertex"))
+        print(f"  evaluate(order=2) {key[7:]:<18} k_F={e['k_F']:g}: {modes} us/vertex "
               f"({e['n_blocks']} blocks, setup {e['setup_s']:.2f} s)")
 
 
@@ -198,20 +226,28 @@ def main() -> None:
     ap.add_argument("--overlap", type=float, default=2.0, help="clusters per vertex")
     ap.add_argument("--assembled-max", type=int, default=200_000,
                     help="largest n for the 'assembled' penalty Hessian")
+    ap.add_argument("--clock", default="wall", choices=list(CLOCKS),
+                    help="wall time, or process CPU time on a shared machine")
+    ap.add_argument("--reorder", nargs="+", default=["none", "rcm"],
+                    choices=list(REORDER_METHODS), help="vertex renumberings to compare")
     args = ap.parse_args()
     sizes = ["10k"] if args.quick else args.sizes
+    _clock[0] = CLOCKS[args.clock]
     numba.set_num_threads(1)
     records = []
     for size in sizes:
         for kind in args.kinds:
-            rec = bench_one(kind, size, args)
-            print_row(rec)
-            records.append(rec)
+            for reorder in args.reorder:
+                rec = bench_one(kind, size, reorder, args)
+                print_row(rec)
+                records.append(rec)
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     meta = {"python": platform.python_version(), "numpy": np.__version__,
             "numba": numba.__version__, "machine": platform.machine(),
             "cpu_count": os.cpu_count(), "repeat": args.repeat, "support": args.support,
-            "overlap": args.overlap}
+            "overlap": args.overlap, "clock": args.clock,
+            "target_us_per_vertex": TARGET_US_PER_VERTEX,
+            "target_us_per_block": TARGET_US_PER_BLOCK, "load_average_end": os.getloadavg()}
     RESULTS.write_text(json.dumps({"meta": meta, "results": records}, indent=2))
     print(f"\nwrote {RESULTS}")
 

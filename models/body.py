@@ -22,7 +22,8 @@ mass matrix with the energy's quadrature, exact for P1 and P2), so its first var
 exactly ``-F``; it is part of the ``gravity`` (external load) energy term.
 
 Pins (``PinSpec``) hold selected components of selected nodes at
-``value + velocity * t``: a moving pin compresses or stretches the body over time. In
+``(R(angle + omega t) - I)(X - center) + value + velocity * t`` (``R`` the rotation about
+``axis``): a moving pin compresses, stretches, twists or bends the body over time. In
 statics, ``t`` is the load parameter and a step advances it by ``dt``. A failed step is
 retried with half the step (time step or load increment), ``NewtonOptions.max_halvings``
 times, from the last good state; then ``SolverError`` is raised with that state restored.
@@ -61,7 +62,12 @@ class PinSpec:
     A node at reference position ``X`` is selected by a box when
     ``box_min - tol <= X <= box_max + tol`` componentwise, by a plane when
     ``|(X - point).normal| <= tol``. Its components ``components`` are held at
-    ``value + velocity * t``.
+
+        u(X, t) = (R(phi(t)) - I)(X - center) + value + velocity t,   phi = angle + omega t,
+
+    a rigid motion: ``R(phi) = I + sin(phi) K + (1 - cos(phi)) K^2`` is the rotation by
+    ``phi`` about the unit ``axis`` through ``center`` (Rodrigues; ``K a = axis x a``). With
+    ``angle = omega = 0`` (the default) the pin is a pure translation.
 
     Attributes:
         kind: ``"box"`` or ``"plane"``.
@@ -74,6 +80,11 @@ class PinSpec:
         value: Prescribed displacement at t = 0 [m].
         velocity: Prescribed velocity of the pinned nodes [m/s] (per unit load parameter in
             statics).
+        axis: Rotation axis (normalised here; non-zero when the pin rotates) [-].
+        center: A point of the rotation axis [m].
+        angle: Rotation angle at t = 0 [rad].
+        angular_velocity: Angular velocity ``omega`` about ``axis`` [rad/s] (per unit load
+            parameter in statics); right-hand rule.
 
     """
 
@@ -86,6 +97,10 @@ class PinSpec:
     components: tuple[int, ...] = (0, 1, 2)
     value: tuple[float, float, float] = (0.0, 0.0, 0.0)
     velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    angle: float = 0.0
+    angular_velocity: float = 0.0
 
     def __post_init__(self) -> None:
         if self.kind not in ("box", "plane"):
@@ -95,8 +110,14 @@ class PinSpec:
             if arr.shape != (3,) or np.any(np.isnan(arr)):
                 raise InputError(f"pin.{name} must be a 3-vector, got {getattr(self, name)!r}")
             object.__setattr__(self, name, tuple(float(a) for a in arr))
-        for name in ("point", "normal", "value", "velocity"):
+        for name in ("point", "normal", "value", "velocity", "axis", "center"):
             object.__setattr__(self, name, _vector3(f"pin.{name}", getattr(self, name)))
+        for name in ("angle", "angular_velocity"):
+            if not math.isfinite(float(getattr(self, name))):
+                raise InputError(f"pin.{name} must be finite, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, float(getattr(self, name)))
+        if self.rotates and np.linalg.norm(self.axis) == 0.0:
+            raise InputError("pin.axis must be non-zero for a rotating pin")
         if self.kind == "plane" and np.linalg.norm(self.normal) == 0.0:
             raise InputError("pin.normal must be non-zero")
         if not (math.isfinite(self.tol) and self.tol >= 0.0):
@@ -118,6 +139,23 @@ class PinSpec:
     def displacement(self, t: float) -> np.ndarray:
         """Prescribed displacement ``value + velocity * t`` [m]."""
         return np.asarray(self.value) + np.asarray(self.velocity) * t
+
+    @property
+    def rotates(self) -> bool:
+        """True when the pin prescribes a rotation (``angle`` or ``angular_velocity`` != 0)."""
+        return self.angle != 0.0 or self.angular_velocity != 0.0
+
+    def rotation(self, t: float) -> np.ndarray:
+        """Rotation matrix ``R(angle + omega t)`` about ``axis`` (Rodrigues), (3, 3)."""
+        a = np.asarray(self.axis) / np.linalg.norm(self.axis)
+        phi = self.angle + self.angular_velocity * t
+        K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+        return np.eye(3) + math.sin(phi) * K + (1.0 - math.cos(phi)) * (K @ K)
+
+    def displacement_at(self, X: np.ndarray, t: float) -> np.ndarray:
+        """Prescribed displacement ``(R - I)(X - center) + value + velocity t`` of rows X [m]."""
+        arm = np.asarray(X, dtype=float).reshape(-1, 3) - np.asarray(self.center)
+        return arm @ (self.rotation(t) - np.eye(3)).T + self.displacement(t)
 
 
 @dataclass(frozen=True)
@@ -167,6 +205,48 @@ class BodyOptions:
 def _as(cls: type, value: Any) -> Any:
     """``value`` if it is a ``cls`` already, else ``cls(**value)`` (a TOML table)."""
     return value if isinstance(value, cls) else cls(**dict(value))
+
+
+class _PinValue:
+    """Prescribed values of component ``k`` of one pin and their Dirichlet condition.
+
+    A translating pin has one value for all its nodes (a ``Constant``); a rotating pin has one
+    per node, held in a ``Function`` on the collapsed component space ``V.sub(k)``.
+
+    Args:
+        mesh: The body's mesh.
+        V: The body's vector space.
+        pin: The pin.
+        k: Component held.
+        dofs: Dofs ``3 i + k`` of the pinned nodes ``i`` in ``V``.
+        X: Reference positions of the pinned nodes, (n, 3) [m].
+
+    """
+
+    def __init__(self, mesh: Any, V: Any, pin: PinSpec, k: int, dofs: np.ndarray,
+                 X: np.ndarray) -> None:
+        self.pin, self.k, self.X = pin, k, X
+        self.value: Any
+        self.cdofs: np.ndarray | None = None
+        if not pin.rotates:
+            self.value = dolfinx.fem.Constant(mesh, float(pin.displacement(0.0)[k]))
+            self.bc = dolfinx.fem.dirichletbc(self.value, dofs, V.sub(k))
+            return
+        Vk, parent = V.sub(k).collapse()
+        parent = np.asarray(parent).reshape(-1)
+        inverse = np.full(int(parent.max(initial=0)) + 1, -1, dtype=np.int32)
+        inverse[parent] = np.arange(parent.size, dtype=np.int32)
+        self.cdofs = inverse[dofs]
+        self.value = dolfinx.fem.Function(Vk, name=f"pin_component_{k}")
+        self.bc = dolfinx.fem.dirichletbc(self.value, np.vstack([dofs, self.cdofs]), V.sub(k))
+        self.set(0.0)
+
+    def set(self, t: float) -> None:
+        """Set the prescribed values at time (load parameter) ``t``."""
+        if self.cdofs is None:
+            self.value.value = float(self.pin.displacement(t)[self.k])
+            return
+        self.value.x.array[self.cdofs] = self.pin.displacement_at(self.X, t)[:, self.k]
 
 
 @dataclass(frozen=True)
@@ -245,6 +325,7 @@ class Body:
         self.gravity = dolfinx.fem.Constant(mesh, np.array(self.options.gravity))
         self.load = self._function("nodal_load_density")
         self._load_forms: list[Any] | None = None
+        self._inertia_force: Any = None  # int rho a.w dX (pin_reaction, Newmark)
         self._mass_ksp: Any = None
         self._term: QuadraticTerm | None = None
         self.contacts = [PenaltyContact(c, mesh, material.E) for c in self.options.contacts]
@@ -271,9 +352,9 @@ class Body:
             if self.mesh.comm.allreduce(nodes.size, op=MPI.SUM) == 0:
                 raise InputError(f"pin {pin} selects no node of the mesh")
             for k in pin.components:
-                value = dolfinx.fem.Constant(self.mesh, float(pin.displacement(0.0)[k]))
                 dofs = (3 * nodes + k).astype(np.int32)
-                bcs.append(dolfinx.fem.dirichletbc(value, dofs, self.V.sub(k)))
+                value = _PinValue(self.mesh, self.V, pin, k, dofs, X[nodes])
+                bcs.append(value.bc)
                 constants.append((pin, k, value, dofs))
         return bcs, constants
 
@@ -388,6 +469,40 @@ class Body:
         """Move the centre of sphere obstacle ``index`` [m] before the next step."""
         self.contacts[index].set_center(center)
 
+    def pin_reaction(self) -> np.ndarray:
+        """Total force of the pins on the body [N], (3,), at the current state (collective).
+
+        At a pinned dof the pin supplies the force that makes the potential stationary: the
+        residual ``dPi/du`` there (assembled without Dirichlet rows, the last step's
+        potential: with inertia in dynamics; Newmark: static residual + ``M a``, also right
+        at t = 0 once ``a_0`` is set), summed per component over the owned pinned dofs. The
+        quadratic term of :meth:`set_quadratic_energy` is not included.
+        """
+        solver = self._dynamic_solver or self._static_solver
+        forms = [solver.problem.F]
+        if self.options.dynamics == "newmark":
+            if self._inertia_force is None:
+                w = ufl.TestFunction(self.V)
+                self._inertia_force = dolfinx.fem.form(
+                    self.material.density * ufl.dot(self.a, w) * self.dx)
+            forms = [self._static_solver.problem.F, self._inertia_force]
+        b = dolfinx.fem.assemble_vector(forms[0])
+        for form in forms[1:]:
+            b.array[:] += dolfinx.fem.assemble_vector(form).array
+        b.scatter_reverse(dolfinx.la.InsertMode.add)
+        dofs = np.unique(np.concatenate([bc.dof_indices()[0][:bc.dof_indices()[1]]
+                                         for bc in self._bcs] or [np.zeros(0, np.int32)]))
+        force = np.zeros(3)
+        np.add.at(force, dofs % 3, b.array[dofs])
+        return np.asarray(self.mesh.comm.allreduce(force, op=MPI.SUM))
+
+    def initial_acceleration(self) -> None:
+        """Newmark: compute ``a_0`` now if it is not valid yet.
+
+        Call before taking a snapshot that later steps restore (the rigid-ball coupling).
+        """
+        self._ensure_initial_acceleration()
+
     def set_state(self, t: float, u: np.ndarray, v: np.ndarray, a: np.ndarray) -> None:
         """Set time and state (e.g. from a checkpoint) and mark the acceleration as valid.
 
@@ -496,8 +611,8 @@ class Body:
             self._apply_bcs()
 
     def _set_pins(self, t: float) -> None:
-        for pin, k, constant, _ in self._pin_constants:
-            constant.value = float(pin.displacement(t)[k])
+        for _, _, value, _ in self._pin_constants:
+            value.set(t)
 
     def _apply_bcs(self) -> None:
         for bc in self._bcs:

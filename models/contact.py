@@ -146,3 +146,24 @@ class PenaltyContact:
         neg = ufl.conditional(ufl.lt(g, 0.0), g, 0.0)
         traction = -self.stiffness * neg * grad_g
         return [traction[i] * self.ds for i in range(3)]
+
+    def center_stiffness_forms(self, u: Any) -> list[list[Any]]:
+        """Forms of ``K = dR/dc`` [N/m], the change of the force on the body with the centre.
+
+        With ``n = (x - c)/d``, ``d = |x - c|`` and ``g = d - r`` (sphere only):
+
+            dR_i/dc_j = int k [ H(-g) n_i n_j + <g>_- (delta_ij - n_i n_j) / d ] dA,
+
+        the first term the normal penalty stiffness, the second (<= 0) the rotation of the
+        normal. The body is held fixed, so this is the contact stiffness seen by a rigid sphere
+        against a rigid surface; the compliant body makes the true ``dR/dc`` smaller.
+        """
+        if self.options.obstacle != "sphere":
+            raise InputError("center_stiffness_forms: only for a sphere obstacle")
+        g, n = self.gap(u)
+        d = g + self.radius
+        inside = ufl.conditional(ufl.lt(g, 0.0), 1.0, 0.0)
+        neg = ufl.conditional(ufl.lt(g, 0.0), g, 0.0)
+        K = self.stiffness * (inside * ufl.outer(n, n)
+                              + neg / d * (ufl.Identity(3) - ufl.outer(n, n)))
+        return [[K[i, j] * self.ds for j in range(3)] for i in range(3)]

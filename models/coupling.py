@@ -25,6 +25,8 @@ import scipy.sparse as sp
 from models.backend import PETSc, dolfinx
 from models.embedding.embedding import Embedding, add_transpose_to_function
 from models.errors import InputError
+from models.shell.penalty import PenaltyOperator, penalty_gram
+from models.shell.penalty import penalty_term as shell_penalty_term
 from solvers.body_newton import QuadraticTerm
 
 CouplingMode = Literal["one_way", "two_way"]
@@ -83,11 +85,15 @@ class CouplingOptions:
                              f"got {self.relaxation}")
 
 
-def penalty_force(H: sp.csr_matrix, k_P: float, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+def penalty_force(H: sp.csr_matrix | PenaltyOperator, k_P: float, x: np.ndarray,
+                  y: np.ndarray) -> np.ndarray:
     """Force of the cluster penalty on the target, ``f = -dW_P/dy = 2 k_P H^T H (x - y)``.
 
+    Since ``W_P`` depends on ``x - y`` only, ``-dW_P/dy = dW_P/dx``: the gradient of
+    :func:`models.shell.penalty.penalty_term`, reused here.
+
     Args:
-        H: ``(c, n)`` cluster matrix.
+        H: ``(c, n)`` cluster matrix, or its :class:`PenaltyOperator` (no transpose per call).
         k_P: penalty stiffness.
         x: ``(n, 3)`` shell positions.
         y: ``(n, 3)`` target.
@@ -96,7 +102,66 @@ def penalty_force(H: sp.csr_matrix, k_P: float, x: np.ndarray, y: np.ndarray) ->
         ``(n, 3)`` forces (energy / length).
 
     """
-    return 2.0 * k_P * (H.T @ (H @ (np.asarray(x) - np.asarray(y))))
+    x, y = np.asarray(x), np.asarray(y)
+    op = H if isinstance(H, PenaltyOperator) else PenaltyOperator.from_matrix(H, x.shape[0])
+    grad = shell_penalty_term(x, y, op, order=1, stiffness=k_P).grad
+    assert grad is not None  # order 1
+    return grad.reshape(-1, 3)
+
+
+@dataclass(frozen=True, eq=False)
+class PenaltyCoupling:
+    """The constant part of the implicit coupling term, built once per run (collective).
+
+    ``K = 2 k_P (B^T H^T H B) (x) I_3`` and ``M = 2 k_P B^T H^T H`` depend on the embedding,
+    the clusters and ``k_P`` only, so the two-way iteration assembles them once and forms
+    only ``c = M d`` per iteration (session 1 rebuilt ``H^T H``, ``B^T H^T H B`` and the
+    PETSc matrix at every body/shell iteration).
+
+    Attributes:
+        K: PETSc matrix of this rank's owned rows (shared by every :meth:`term`: do not
+            destroy it while the coupling is in use).
+        M: ``(n_b, n)`` scipy matrix ``2 k_P B^T H^T H`` (rows: body nodes).
+        op: the cluster matrix with its transpose.
+        k_P: penalty stiffness.
+        rows: ``(lo, hi)`` owned block range of the body space.
+        bs: block size of the body space (3).
+
+    """
+
+    K: Any
+    M: sp.csr_matrix
+    op: PenaltyOperator
+    k_P: float
+    rows: tuple[int, int]
+    bs: int
+
+    @classmethod
+    def build(cls, emb: Embedding, H: sp.csr_matrix, k_P: float, V: Any) -> PenaltyCoupling:
+        """Assemble ``K`` and ``M`` for the body space ``V`` (collective)."""
+        B = emb.global_matrix()
+        op = PenaltyOperator.from_matrix(H, B.shape[0])
+        M = ((2.0 * k_P) * (B.T @ penalty_gram(op))).tocsr()
+        K = sp.kron(M @ B, sp.identity(3), format="csr")
+        lo, hi = V.dofmap.index_map.local_range
+        bs = V.dofmap.index_map_bs
+        owned = K[lo * bs:hi * bs].tocsr()
+        owned.sort_indices()
+        n_global = K.shape[0]
+        mat = PETSc.Mat().createAIJ(size=((owned.shape[0], n_global), (owned.shape[0], n_global)),
+                                    csr=(owned.indptr.astype(PETSc.IntType),
+                                         owned.indices.astype(PETSc.IntType), owned.data),
+                                    comm=V.mesh.comm)
+        mat.assemble()
+        return cls(mat, M, op, float(k_P), (int(lo), int(hi)), int(bs))
+
+    def term(self, d: np.ndarray) -> QuadraticTerm:
+        """Return the quadratic term of the shell displacement ``d = x - X_T`` ((n, 3))."""
+        lo, hi = self.rows
+        vec = self.K.createVecLeft()
+        vec.array[:] = (self.M[lo:hi] @ d).reshape(-1)
+        hd = self.op.H @ d
+        return QuadraticTerm(self.K, vec, float(self.k_P * np.sum(hd * hd)))
 
 
 def penalty_term(emb: Embedding, H: sp.csr_matrix, k_P: float, d: np.ndarray,
@@ -111,6 +176,7 @@ def penalty_term(emb: Embedding, H: sp.csr_matrix, k_P: float, d: np.ndarray,
     per component (``K`` acts on the 3 components alike: ``K (x) I_3`` in the interleaved
     dof layout ``3 b + k``). ``-dE/du = B^T f`` with ``f`` of :func:`penalty_force`, so the
     total force on the body equals ``sum_i f_i``. Collective; each rank sets its owned rows.
+    A loop over many ``d`` should build :class:`PenaltyCoupling` once and call its ``term``.
 
     Args:
         emb: B for the body's space ``V``.
@@ -120,24 +186,7 @@ def penalty_term(emb: Embedding, H: sp.csr_matrix, k_P: float, d: np.ndarray,
         V: the body's vector function space.
 
     """
-    B = emb.global_matrix()
-    Q = (H.T @ H).tocsr()
-    K = sp.kron((2.0 * k_P) * (B.T @ (Q @ B)), sp.identity(3), format="csr")
-    c = ((2.0 * k_P) * (B.T @ (Q @ d))).reshape(-1)
-    lo, hi = V.dofmap.index_map.local_range
-    bs = V.dofmap.index_map_bs
-    rows = K[lo * bs:hi * bs].tocsr()
-    rows.sort_indices()
-    n_global = K.shape[0]
-    mat = PETSc.Mat().createAIJ(size=((rows.shape[0], n_global), (rows.shape[0], n_global)),
-                                csr=(rows.indptr.astype(PETSc.IntType),
-                                     rows.indices.astype(PETSc.IntType), rows.data),
-                                comm=V.mesh.comm)
-    mat.assemble()
-    vec = mat.createVecLeft()
-    vec.array[:] = c[lo * bs:hi * bs]
-    hd = H @ d
-    return QuadraticTerm(mat, vec, float(k_P * np.sum(hd * hd)))
+    return PenaltyCoupling.build(emb, H, k_P, V).term(d)
 
 
 def body_force_function(emb: Embedding, forces: np.ndarray, V: Any) -> Any:
@@ -147,5 +196,5 @@ def body_force_function(emb: Embedding, forces: np.ndarray, V: Any) -> Any:
     return F
 
 
-__all__ = ["CouplingMode", "CouplingScheme", "CouplingOptions", "body_force_function",
-           "penalty_force", "penalty_term"]
+__all__ = ["CouplingMode", "CouplingOptions", "CouplingScheme", "PenaltyCoupling",
+           "body_force_function", "penalty_force", "penalty_term"]

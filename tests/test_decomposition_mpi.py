@@ -47,6 +47,31 @@ def test_distributed_monolithic_equals_serial(mpiexec, backend) -> None:
 
 
 @pytest.mark.mpi
+def test_split_low_rank_newton_equals_serial(mpiexec) -> None:
+    """Stencil-split Newton, augmented [[A, G^T], [G, -I]] over MUMPS LDL^T on 2 ranks."""
+    out = _result(mpiexec([SCRIPT, "--mode", "split"], n=2, timeout=TIMEOUT))
+    print(out)
+    assert out["converged"]
+    assert out["iterations"] == out["iterations_ref"]
+    assert out["energy_rel"] < 1e-12
+    assert out["max_diff"] < 1e-8
+    assert out["rank_spread"] == 0.0
+    assert out["owned_total"] == (12 + 1) ** 2  # every vertex owned by exactly one rank
+    # no rank holds the whole matrix; the rows of the two ranks are the serial matrix
+    assert sum(out["local_entries"]) == out["serial_entries"]
+    assert max(out["local_entries"]) < 0.75 * out["serial_entries"]
+    # a second, warm-started frame (new target) on the same solver equals its serial solve
+    assert out["frame2_converged"]
+    assert out["frame2_iterations"] == out["frame2_iterations_ref"] < out["iterations"]
+    assert out["frame2_energy_rel"] < 1e-12
+    assert out["frame2_max_diff"] < 1e-8
+    assert out["analyses"] == 1  # one symbolic analysis for all factorisations of both frames
+    # the same shifted retries as the serial solve: the inertia test (INFOG(12) > 3c) sees
+    # the negative eigenvalues on 2 ranks too (ICNTL(13) = 1; ScaLAPACK's root hid them)
+    assert out["factorizations"] == out["factorizations_ref"] > out["iterations"]
+
+
+@pytest.mark.mpi
 @pytest.mark.parametrize(("exchange", "patch"), [("neighbour", 1), ("client_server", 0)])
 def test_failing_patch_stops_all_ranks(mpiexec, exchange, patch, monkeypatch) -> None:
     monkeypatch.setenv("DECOMP_FAIL_PATCH", str(patch))

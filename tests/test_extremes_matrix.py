@@ -21,7 +21,11 @@ coarse 2x2x1 box subdivided, clusters from FPS, target = the surface compressed 
   * ``k_P / k_B`` 1 .. 1e10 and ``k_B`` down to 1e-8 (membrane dominated);
   * subdivision levels 0 .. 4;
   * near-degenerate triangles: slivers of quality < ``MIN_QUALITY`` and a zero-area one are
-    refused naming the face; an accepted sliver stops cleanly by the stagnation test.
+    refused naming the face; accepted slivers (q = 0.465 .. 2.3e-3) converge with the mixed
+    Hessian and (q >= 0.023) the exact one thanks to the flip barrier; without it
+    (``k_F = 0``) the 2.3e-3 sliver collapses onto its zero-area singularity and the solve
+    stops by the stagnation test. Every shell row records the smallest flip-barrier ratio
+    ``min_s`` at the end (the table's last column).
 """
 
 from __future__ import annotations
@@ -47,6 +51,7 @@ from models.embedding.subdivision import SubdivisionOptions, subdivide
 from models.embedding.surface import boundary_surface
 from models.errors import InputError
 from models.materials import Material
+from models.shell.barrier import signed_area_ratio
 from models.shell.energy import ShellEnergy, ShellParams
 from models.shell.rest import MIN_QUALITY, RestState, face_quality
 from models.shell.topology import ShellTopology
@@ -74,13 +79,15 @@ def table() -> Iterator[None]:
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(ROWS, indent=1, allow_nan=True) + "\n")
     head = (f"{'case':34s} {'outcome':9s} {'steps':>5s} {'its':>5s} {'max':>4s} "
-            f"{'halv':>4s} {'btrk':>5s} {'flip':>4s} {'shift':>5s} {'min detF/W':>11s}")
+            f"{'halv':>4s} {'btrk':>5s} {'flip':>4s} {'shift':>5s} {'min detF/W':>11s} "
+            f"{'min s':>9s}")
     print("\n" + head + "\n" + "-" * len(head))
     for r in ROWS:
         print(f"{r['case']:34s} {r['outcome']:9s} {r.get('steps', 0):5d} "
               f"{r.get('iterations', 0):5d} {r.get('max_iterations', 0):4d} "
               f"{r.get('halvings', 0):4d} {r.get('backtracks', 0):5d} {r.get('flips', 0):4d} "
-              f"{r.get('shifted', 0):5d} {r.get('min_det_f', r.get('energy', math.nan)):11.4g}")
+              f"{r.get('shifted', 0):5d} {r.get('min_det_f', r.get('energy', math.nan)):11.4g} "
+              f"{r.get('min_s', math.nan):9.3g}")
     print(f"written to {RESULTS}")
 
 
@@ -95,7 +102,16 @@ def cube_mesh(points: np.ndarray | None = None) -> Any:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         clean = validate(pts, tet.tets, source="extreme cube")
-    return mesh_from_arrays(MPI.COMM_WORLD, clean.points, clean.tets)
+    return distributed(clean.points, clean.tets)
+
+
+def distributed(points: np.ndarray, tets: np.ndarray) -> Any:
+    """The mesh on COMM_WORLD: rank 0 passes the arrays, the others empty ones (as
+    ``mesh_from_arrays`` requires; passing them on every rank duplicates cells and crashed
+    the 2-rank run with heap corruption)."""
+    root = MPI.COMM_WORLD.rank == 0
+    return mesh_from_arrays(MPI.COMM_WORLD, points if root else np.zeros((0, 3)),
+                            tets if root else np.zeros((0, 4), dtype=np.int64))
 
 
 def press_pins(top_velocity: float) -> tuple[PinSpec, ...]:
@@ -162,9 +178,48 @@ def check_body(row: dict[str, Any], body: Body, halvings_allowed: bool = False) 
         assert row["halvings"] == 0, row
 
 
-def body(material: Material, options: BodyOptions, mesh: Any = None) -> Body:
+def body(material: Material, options: BodyOptions, mesh: Any = None,
+         newton: NewtonOptions | None = None) -> Body:
     return Body(mesh if mesh is not None else cube_mesh(), material, options,
-                NewtonOptions(max_it=MAX_IT))
+                newton or NewtonOptions(max_it=MAX_IT))
+
+
+BodyCase = tuple[Body, int, Callable[[int], None] | None]
+"""A body case: the body, its number of steps and an optional per-step hook."""
+
+
+def nu_case(nu: float) -> BodyCase:
+    """30 % static compression in 3 load steps of a cube with Poisson ratio ``nu``."""
+    return body(Material(E=1e4, nu=nu), BodyOptions(dynamics="static", dt=1.0,
+                                                    gravity=(0, 0, 0),
+                                                    pins=press_pins(-0.1 * L))), 3, None
+
+
+def compression_case(degree: int, steps: int, newton: NewtonOptions | None = None
+                     ) -> BodyCase:
+    """Compression to half height in ``steps`` static load steps (P``degree``)."""
+    options = BodyOptions(degree=degree, dynamics="static", dt=1.0, gravity=(0, 0, 0),
+                          pins=press_pins(-0.5 * L / steps))
+    return body(Material(E=1e4, nu=0.3), options, newton=newton), steps, None
+
+
+def time_step_case(dynamics: str, dt: float) -> BodyCase:
+    """Block 1 cm above the ground, 3 dynamic steps of ``dt``."""
+    ground = ContactOptions(obstacle="plane", point=(0.0, 0.0, -0.01), normal=(0.0, 0.0, 1.0))
+    return body(Material(E=1e4, nu=0.3, density=1000.0),
+                BodyOptions(dynamics=dynamics, dt=dt, contacts=(ground,))), 3, None
+
+
+def sphere_case() -> BodyCase:
+    """A clamped block indented by a sphere moving down at 10 m/s (20 steps of 0.1 ms)."""
+    dt, speed, radius = 1e-4, 10.0, 0.04
+    start = np.array([L / 2, L / 2, L + radius])
+    sphere = ContactOptions(obstacle="sphere", center=tuple(start), radius=radius)
+    b = body(Material(E=1e4, nu=0.3), BodyOptions(dynamics="implicit_euler", dt=dt,
+                                                  contacts=(sphere,), gravity=(0, 0, 0),
+                                                  pins=press_pins(0.0)[:1]))
+    move = lambda k: b.set_sphere_center(start - [0.0, 0.0, speed * dt * (k + 1)])  # noqa: E731
+    return b, 20, move
 
 
 def top_displacement(b: Body) -> float:
@@ -176,9 +231,8 @@ def top_displacement(b: Body) -> float:
 
 @pytest.mark.parametrize("nu", [0.0, 0.3, 0.45, 0.49, 0.499])
 def test_body_poisson_ratio(nu):
-    b = body(Material(E=1e4, nu=nu), BodyOptions(dynamics="static", dt=1.0, gravity=(0, 0, 0),
-                                                 pins=press_pins(-0.1 * L)))
-    row = {"case": f"body nu={nu}", "group": "nu", "nu": nu, **run_body(b, 3)}
+    b, steps, _ = nu_case(nu)
+    row = {"case": f"body nu={nu}", "group": "nu", "nu": nu, **run_body(b, steps)}
     ROWS.append(row)
     check_body(row, b)
     assert top_displacement(b) == pytest.approx(-0.3 * L, rel=1e-12)
@@ -187,9 +241,7 @@ def test_body_poisson_ratio(nu):
 
 @pytest.mark.parametrize(("degree", "steps"), [(1, 5), (2, 5), (1, 1)])
 def test_body_compression_to_half_height(degree, steps):
-    options = BodyOptions(degree=degree, dynamics="static", dt=1.0, gravity=(0, 0, 0),
-                          pins=press_pins(-0.5 * L / steps))
-    b = body(Material(E=1e4, nu=0.3), options)
+    b, _, _ = compression_case(degree, steps)
     row = {"case": f"body 50% P{degree} in {steps} step(s)", "group": "compression",
            **run_body(b, steps)}
     ROWS.append(row)
@@ -204,9 +256,7 @@ def test_body_compression_to_half_height(degree, steps):
                                               ("newmark", 1e-5), ("newmark", 1e-1)])
 def test_body_time_step(dynamics, dt):
     """Block 1 cm above the ground, 3 steps; dt = 0.1 s lands it hard inside one step."""
-    ground = ContactOptions(obstacle="plane", point=(0.0, 0.0, -0.01), normal=(0.0, 0.0, 1.0))
-    b = body(Material(E=1e4, nu=0.3, density=1000.0),
-             BodyOptions(dynamics=dynamics, dt=dt, contacts=(ground,)))
+    b, _, _ = time_step_case(dynamics, dt)
     row = {"case": f"body {dynamics} dt={dt:g}", "group": "dt", "dt": dt, **run_body(b, 3)}
     ROWS.append(row)
     check_body(row, b)
@@ -225,14 +275,8 @@ def test_body_time_step(dynamics, dt):
 
 def test_body_hit_by_sphere_at_10_m_per_s():
     """A clamped block indented 20 % by a sphere moving down at 10 m/s (20 steps of 0.1 ms)."""
-    dt, speed, radius = 1e-4, 10.0, 0.04
-    start = np.array([L / 2, L / 2, L + radius])
-    sphere = ContactOptions(obstacle="sphere", center=tuple(start), radius=radius)
-    b = body(Material(E=1e4, nu=0.3), BodyOptions(dynamics="implicit_euler", dt=dt,
-                                                  contacts=(sphere,), gravity=(0, 0, 0),
-                                                  pins=press_pins(0.0)[:1]))
-    move = lambda k: b.set_sphere_center(start - [0.0, 0.0, speed * dt * (k + 1)])  # noqa: E731
-    row = {"case": "body sphere 10 m/s", "group": "obstacle", **run_body(b, 20, move)}
+    b, steps, move = sphere_case()
+    row = {"case": "body sphere 10 m/s", "group": "obstacle", **run_body(b, steps, move)}
     force = b.reaction_force()
     row["reaction_z"] = float(force[2])
     ROWS.append(row)
@@ -350,8 +394,11 @@ def squash_triangle(x: np.ndarray, faces: np.ndarray, flatness: float) -> np.nda
 
 
 def run_shell(name: str, group: str, energy: ShellEnergy, x0: np.ndarray,
-              extra: dict[str, Any]) -> tuple[dict[str, Any], np.ndarray]:
-    solver = ShellNewtonSolver(energy, ShellNewtonOptions(rtol=1e-8, max_iterations=100))
+              extra: dict[str, Any], options: ShellNewtonOptions | None = None
+              ) -> tuple[dict[str, Any], np.ndarray]:
+    """Solve, record iterations / fallbacks (shifted iterations, line-search reductions)."""
+    solver = ShellNewtonSolver(energy, options or ShellNewtonOptions(rtol=1e-8,
+                                                                     max_iterations=100))
     try:
         x, report = solver.minimize(x0)
     except ShellSolveError as exc:
@@ -364,7 +411,8 @@ def run_shell(name: str, group: str, energy: ShellEnergy, x0: np.ndarray,
            "max_iterations": report.iterations, "shifted": report.shifted_iterations,
            "backtracks": report.line_search_steps, "energy": report.energy,
            "grad_norm": report.grad_norm, "tolerance": report.tolerance,
-           "worst_energy_increase": increase, "reason": report.reason}
+           "worst_energy_increase": increase, "reason": report.reason,
+           **sliver_state(energy, np.asarray(x))}
     ROWS.append(row)
     return row, np.asarray(x)
 
@@ -377,10 +425,14 @@ def check_shell(row: dict[str, Any], x: np.ndarray, max_iterations: int = 60) ->
     assert row["grad_norm"] <= row["tolerance"]
 
 
+def ratio_params(ratio: float) -> ShellParams:
+    """Skin/body stiffness ratio: ``k_L``, ``k_B`` scaled by ``ratio`` against ``k_P``."""
+    return ShellParams(k_L=1e3 * ratio, k_B=1e-1 * ratio, k_P=1e3)
+
+
 @pytest.mark.parametrize("ratio", [1.0, 1e2, 1e4, 1e6])
 def test_shell_skin_to_body_stiffness_ratio(ratio):
-    params = ShellParams(k_L=1e3 * ratio, k_B=1e-1 * ratio, k_P=1e3)
-    energy, x0 = shell_case(params)
+    energy, x0 = shell_case(ratio_params(ratio))
     row, x = run_shell(f"shell E ratio {ratio:g}", "stiffness", energy, x0, {"ratio": ratio})
     check_shell(row, x)
 
@@ -389,12 +441,13 @@ def test_shell_skin_to_body_stiffness_ratio(ratio):
                                           (1e-8, 1e2), (1e-8, 1e4)])
 def test_shell_penalty_to_bending_ratio(k_B, k_P):
     """Membrane dominated (k_B -> 1e-8): compression buckles the membrane, the Hessian is
-    indefinite for most iterations (shifted), so the bound is looser there (measured 77)."""
+    indefinite for most iterations (shifted), so the bound is looser there (measured 79 and 82
+    iterations at k_P/k_B = 1e10 and 1e12 with k_P = 1e4; the same with the flip barrier off)."""
     params = ShellParams(k_L=1e3, k_B=k_B, k_P=k_P)
     energy, x0 = shell_case(params)
     name = f"shell kP/kB={k_P / k_B:.0e} kB={k_B:g}"
     row, x = run_shell(name, "penalty", energy, x0, {"k_B": k_B, "k_P": k_P})
-    check_shell(row, x, max_iterations=60 if k_P / k_B < 1e9 else 90)  # measured max 77
+    check_shell(row, x, max_iterations=60 if k_P / k_B < 1e9 else 90)  # measured max 82
 
 
 @pytest.mark.parametrize("levels", [0, 1, 2, 3, 4])
@@ -403,6 +456,7 @@ def test_shell_subdivision_levels(levels):
     row, x = run_shell(f"shell subdivision L={levels}", "subdivision", energy, x0,
                        {"levels": levels})
     check_shell(row, x)
+    assert row["barrier_energy"] == 0.0  # inactive at the minimum: the draft's W_L + W_B + W_P
 
 
 @pytest.mark.parametrize("flatness", [1e-6, 0.0])
@@ -428,26 +482,90 @@ def test_shell_near_degenerate_triangles(flatness):
     assert quality[26] == pytest.approx(2.309 * flatness, rel=1e-3)  # q ~ 4 sqrt(3) A / l^2
 
 
-@pytest.mark.parametrize("flatness", [1e-1, 1e-3])
-def test_shell_sliver_accepted_stops_cleanly(flatness):
-    """A sliver of quality 0.23 / 2.3e-3 (>= ``MIN_QUALITY``) is accepted, but the first
-    shifted Newton step reverses it and the solve gets stuck at its zero-area kink (measured
-    ||g|| 9.6e4 / 4.9e6, W 54.5 / 40.1 vs 0.87 unsquashed): it must stop cleanly by the
-    stagnation test in bounded iterations (measured 58 / 41), naming the sliver, with W never
-    increasing and x finite."""
+SLIVER_ENERGY: dict[tuple[float, str], float] = {}
+"""Converged W of each accepted sliver case, to cross-check the two Hessian strategies."""
+SLIVER_BOUND = {"exact": 90, "mixed": 40}
+"""Newton iterations allowed per strategy (measured max 62 exact at q = 0.023, 26 mixed at
+q = 2.3e-3)."""
+
+
+def sliver_state(energy: ShellEnergy, x: np.ndarray) -> dict[str, float]:
+    """Smallest flip-barrier ratio ``s`` over the faces and the barrier energy at ``x``."""
+    s = signed_area_ratio(x, energy.topology.faces, energy.rest.rest_areas,
+                          energy.reference_normals)
+    return {"min_s": float(s.min()),
+            "barrier_energy": float(energy.evaluate(x, order=0).terms.get("flip_barrier", 0.0))}
+
+
+def sliver_solve(flatness: float, strategy: str) -> tuple[dict[str, Any], np.ndarray]:
+    """Solve the sliver case of rest ``flatness`` with the "exact" or "mixed" strategy."""
     energy, x0 = shell_case(ShellParams(), levels=2, flatness=flatness)
+    options = ShellNewtonOptions(rtol=1e-8, max_iterations=200,
+                                 far_hessian="projected" if strategy == "mixed" else "")
+    quality = float(face_quality(energy.rest.positions, energy.topology.faces).min())
+    return run_shell(f"shell sliver q={quality:.1e} {strategy}", "degenerate", energy, x0,
+                     {"quality": quality, "strategy": strategy}, options)
+
+
+@pytest.mark.parametrize(("flatness", "strategy"), [
+    (0.25, "exact"), (0.25, "mixed"), (1e-1, "exact"), (1e-1, "mixed"), (1e-2, "exact"),
+    (1e-2, "mixed"), (1e-3, "mixed")])
+def test_shell_sliver_accepted_converges(flatness, strategy):
+    """A rest sliver of quality 0.465 / 0.23 / 0.023 / 2.3e-3 (>= ``MIN_QUALITY``) under 15 %
+    compression converges thanks to the flip barrier (models/shell/barrier.py; without it each
+    of them stagnated or hit the iteration cap; on the faces of quality < 0.5 only, q = 0.465
+    still failed with the exact Hessian: a regular neighbour collapsed), with the exact Hessian
+    and with the mixed strategy (projected far from the minimum); both reach the same W.
+    Measured iterations exact 19 / 26 / 62, mixed 4 / 4 / 6 / 26; at q = 2.3e-3 the barrier
+    holds the sliver at s = 0.095 (active), for q >= 0.023 it is inactive at the minimum."""
+    row, x = sliver_solve(flatness, strategy)
+    check_shell(row, x, max_iterations=SLIVER_BOUND[strategy])
+    assert 0.0 < row["min_s"] and np.isfinite(row["barrier_energy"])
+    assert (row["min_s"] < ShellParams().flip_activation) == (flatness == 1e-3), row
+    SLIVER_ENERGY[(flatness, strategy)] = row["energy"]
+    other = SLIVER_ENERGY.get((flatness, "exact" if strategy == "mixed" else "mixed"))
+    if other is not None:
+        assert row["energy"] == pytest.approx(other, rel=1e-9)
+    assert row["energy"] == pytest.approx(0.8675, rel=0.01)  # unsquashed: W = 0.86750
+
+
+def test_shell_sliver_exact_hessian_limit():
+    """q = 2.3e-3 with the exact Hessian: the hinges of the sliver have an indefinite exact
+    Hessian ~ 1 / q^2, so the global shift ``A + tau I`` that makes the system definite
+    (tau ~ 1e8) throttles every other unknown. Measured: converged in 126 iterations once,
+    then, after concurrent solver changes (session 2), not within 200 (W 2.114 vs 0.8645 at the
+    minimum the mixed strategy reaches in 26). What is asserted is what the barrier guarantees
+    whatever the Hessian: no face folds (s > 0), W never increases, x finite, and the solve
+    gets far below the no-barrier stagnation (W = 40.08); use far_hessian = "projected"."""
+    row, x = sliver_solve(1e-3, "exact")
+    assert np.all(np.isfinite(x)) and 0.0 < row["min_s"]
+    assert row["worst_energy_increase"] <= 1e-12, row
+    assert row["energy"] < 4.0 or row["outcome"] == "converged"
+    row["note"] = "exact Hessian: use far_hessian='projected' for slivers of q ~ 1e-3"
+
+
+def test_shell_sliver_without_flip_barrier_stagnates():
+    """The cause, pinned: with ``k_F = 0`` (the draft's energy) the q = 2.3e-3 sliver is pulled
+    onto its zero-area singularity (s = 2.6e-8, ||g|| = 4.9e6, W = 40.08 vs 0.8645 with the
+    barrier) and the solve stops by the stagnation test (measured 39-41 iterations), naming the
+    sliver, with W never increasing and x finite."""
+    energy, x0 = shell_case(ShellParams(k_F=0.0), levels=2, flatness=1e-3)
     with pytest.raises(ShellSolveError) as info:
         ShellNewtonSolver(energy, ShellNewtonOptions(rtol=1e-8, max_iterations=100)
                           ).minimize(x0)
     err, report = info.value, info.value.report
-    ROWS.append({"case": f"shell sliver accepted {flatness:g}", "group": "degenerate",
+    s = signed_area_ratio(err.x, energy.topology.faces, energy.rest.rest_areas,
+                          energy.reference_normals)
+    ROWS.append({"case": "shell sliver q=2.3e-03 no barrier", "group": "degenerate",
                  "outcome": "stagnated", "iterations": report.iterations,
                  "max_iterations": report.iterations, "shifted": report.shifted_iterations,
-                 "energy": report.energy, "grad_norm": report.grad_norm,
+                 "backtracks": report.line_search_steps, "energy": report.energy,
+                 "grad_norm": report.grad_norm, "min_s": float(s.min()),
                  "message": str(err).splitlines()[0]})
-    assert report.reason == "stagnation" and report.iterations <= 70  # measured 58 / 41
+    assert report.reason == "stagnation" and report.iterations <= 70  # measured 39 .. 41
     assert "face 26 [88, 90, 4]" in str(err) and "vertex 4" in str(err)
     assert np.all(np.isfinite(err.x)) and report.grad_norm > 1e3 * report.tolerance
+    assert abs(s[26]) < 1e-6 and report.energy > 10.0  # collapsed sliver, stuck far above W*
     e = report.energies
     assert np.all(np.diff(e) <= 16 * np.finfo(float).eps * np.abs(e[:-1]))
 
@@ -461,7 +579,7 @@ def test_sofa_hit_by_ball_at_10_m_per_s():
     from meshes.builders import sofa
 
     m = sofa(width=2.0, h=0.2)
-    mesh = mesh_from_arrays(MPI.COMM_WORLD, m.points, m.tets)
+    mesh = distributed(m.points, m.tets)
     dt, speed, radius, seat_top = 1e-3, 10.0, 0.2, 0.45
     start = np.array([1.0, 0.35, seat_top + radius])
     sphere = ContactOptions(obstacle="sphere", center=tuple(start), radius=radius)

@@ -117,9 +117,10 @@ def test_term_force_equals_penalty_force_sum(implicit):
 
 
 def test_explicit_scheme_fails_on_the_same_frame(tmp_path):
-    """Measured reference: with the lagged force the shell solve of this frame stops making
-    progress (stagnation), so the explicit scheme raises where the implicit one converges."""
-    with pytest.raises(SolverError, match="shell solve failed") as info:
+    """Measured reference: with the lagged force this frame fails where the implicit scheme
+    converges - in the shell solve (stagnation) without the flip barrier, in the body step
+    (8 halvings) with it (k_F = 1e3), since the shell no longer folds."""
+    with pytest.raises(SolverError, match="shell solve failed|body step failed") as info:
         run_scheme(tmp_path, "explicit")
     print("explicit:", str(info.value)[:200])
 

@@ -9,17 +9,22 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from meshes.shells import grid_plate
+from meshes.shells import grid_plate, icosphere, perturb
 from models.errors import InputError
 from models.shell.dofs import stencil_dofs
+from models.shell.energy import ShellEnergy, ShellParams
+from models.shell.reorder import reorder_mesh
+from models.shell.rest import RestState
 from models.shell.topology import ShellTopology
 from solvers.linear import (
+    MUMPS_ORDERINGS,
     AugmentedPenaltySolver,
     LinearSolverOptions,
     ShiftOptions,
     SparseDirectSolver,
     true_residual,
 )
+from solvers.shell_newton import ShellNewtonOptions, minimize
 
 CASES = [
     ("mumps", "cholesky", "aij"),
@@ -196,6 +201,8 @@ def test_pattern_and_option_errors(rng: np.random.Generator) -> None:
         LinearSolverOptions(backend="petsc", matrix_format="sbaij")
     with pytest.raises(InputError, match="ShiftOptions.growth"):
         ShiftOptions(growth=1.0)
+    with pytest.raises(InputError, match="LinearSolverOptions.mumps_refinement"):
+        LinearSolverOptions(mumps_refinement=-1)
     with pytest.raises(InputError, match="symmetric"):
         AugmentedPenaltySolver(a, penalty_factor(a.shape[0] // 3, 3, rng),
                                LinearSolverOptions(symmetric="cholesky"))
@@ -256,3 +263,127 @@ def test_failed_factorisation_detected_and_recovered(case: tuple[str, str, str],
     assert solver.factorize(a).success
     b = rng.standard_normal(a.shape[0])
     assert true_residual(a, solver.solve(b), b) < 1e-10
+
+
+def shell_hessian(level: int = 3) -> tuple[sp.csr_matrix, np.ndarray]:
+    """Gauss-Newton Hessian of a perturbed icosphere shell (membrane + bending + diagonal
+    penalty, the ``local`` system of benchmarks/shell_solve.py) and its gradient."""
+    points, faces = reorder_mesh(*icosphere(level))[:2]
+    topo = ShellTopology.from_faces(faces, len(points))
+    params = ShellParams(k_L=1e3, k_B=1e-1, k_P=1e3, hessian_mode="gauss_newton")
+    energy = ShellEnergy(topo, RestState.from_positions(topo, points), params,
+                         H=sp.identity(len(points), format="csr"))
+    ev = energy.evaluate(perturb(points, 0.01, seed=4), order=2)
+    assert ev.hess is not None and ev.grad is not None
+    return ev.hess, ev.grad
+
+
+ORDERING_CASES = [("mumps", o) for o in MUMPS_ORDERINGS] + [("petsc", "nd"), ("petsc", "rcm")]
+
+
+@pytest.mark.parametrize("case", ORDERING_CASES, ids=["-".join(c) for c in ORDERING_CASES])
+def test_every_ordering_solves_the_shell_hessian(case: tuple[str, str]) -> None:
+    a, g = shell_hessian()
+    solver = SparseDirectSolver(a, LinearSolverOptions(case[0], "cholesky", ordering=case[1]))
+    report = solver.factorize(a)
+    res = true_residual(a, solver.solve(-g), -g)
+    print(f"{case}: factor entries {report.factor_nnz}, residual {res:.1e}")
+    assert report.success and report.negative_pivots == 0
+    assert res < 1e-10
+    solver.destroy()
+
+
+def test_metis_has_the_least_fill() -> None:
+    """The default MUMPS ordering (METIS) gives fewer factor entries than AMD / AMF / PORD on a
+    shell Hessian (the basis of the default, see LinearSolverOptions.ordering; INFOG(29) counts
+    the full-rank entries, so BLR does not enter)."""
+    a, _ = shell_hessian(4)
+    fill: dict[str, int] = {}
+    for ordering in ("metis", "amd", "amf", "pord"):
+        solver = SparseDirectSolver(a, LinearSolverOptions(ordering=ordering))
+        nnz = solver.factorize(a).factor_nnz
+        assert nnz is not None
+        fill[ordering] = nnz
+        solver.destroy()
+    print("factor entries per ordering:", fill)
+    assert LinearSolverOptions().resolved_ordering == "metis"
+    assert all(fill["metis"] < fill[o] for o in ("amd", "amf", "pord"))
+
+
+@pytest.fixture(scope="module")
+def sphere_10k() -> tuple[sp.csr_matrix, np.ndarray]:
+    """The 10k-vertex shell Hessian: large enough fronts for BLR to compress."""
+    return shell_hessian(5)
+
+
+@pytest.mark.parametrize("tolerance, refinement, bound", [(1e-10, 0, 1e-10), (1e-6, 0, 1e-5),
+                                                          (1e-6, 3, 1e-10)])
+def test_blr_residual_and_refinement(tolerance: float, refinement: int, bound: float,
+                                     sphere_10k: tuple[sp.csr_matrix, np.ndarray]) -> None:
+    """BLR (ICNTL(35)) trades accuracy for speed; refinement (ICNTL(10)) buys it back."""
+    a, g = sphere_10k
+    opts = LinearSolverOptions(mumps_blr=True, mumps_blr_tolerance=tolerance,
+                               mumps_refinement=refinement)
+    if tolerance == 1e-10 and refinement == 0:
+        assert opts == LinearSolverOptions()  # the default is this case
+    blr = SparseDirectSolver(a, opts)
+    report = blr.factorize(a)
+    res_blr = true_residual(a, blr.solve(-g), -g)
+    print(f"BLR {tolerance:g}, {refinement} refinement steps: residual {res_blr:.1e}; "
+          f"MUMPS memory {report.memory_mb} MB")
+    assert report.success and report.negative_pivots == 0
+    assert res_blr < bound
+    if refinement == 0:
+        assert res_blr > 1e-14  # the factor is really compressed (exact: ~3e-16)
+    blr.destroy()
+
+
+@pytest.mark.slow
+def test_newton_converges_with_blr(sphere_10k: tuple[sp.csr_matrix, np.ndarray]) -> None:
+    """Shell Newton on the 10k sphere (pulled back to rest from a perturbed state) converges
+    with a BLR factor at tolerance 1e-6 (inexact Newton) as with the exact factor."""
+    points, faces = reorder_mesh(*icosphere(5))[:2]
+    topo = ShellTopology.from_faces(faces, len(points))
+    params = ShellParams(k_L=1e3, k_B=1e-1, k_P=1e3, hessian_mode="gauss_newton")
+    energy = ShellEnergy(topo, RestState.from_positions(topo, points), params,
+                         H=sp.identity(len(points), format="csr"))
+    x0 = perturb(points, 0.01, seed=4)
+    blr = LinearSolverOptions(mumps_blr=True, mumps_blr_tolerance=1e-6)
+    exact = LinearSolverOptions(mumps_blr=False)
+    x_exact, r_exact = minimize(energy, x0,  # type: ignore[arg-type]
+                                ShellNewtonOptions(rtol=1e-10, linear=exact))
+    x_blr, r_blr = minimize(energy, x0,  # type: ignore[arg-type]
+                            ShellNewtonOptions(rtol=1e-10, linear=blr))
+    print(f"Newton iterations exact {r_exact.iterations} {r_exact.grad_norms}, "
+          f"BLR {r_blr.iterations} {r_blr.grad_norms}")
+    assert r_exact.converged and r_blr.converged
+    assert r_blr.iterations <= r_exact.iterations + 2
+    assert np.max(np.abs(x_blr - x_exact)) < 1e-8
+
+
+def test_aij_backend_shares_the_pattern_arrays() -> None:
+    """No persistent copy of the constant pattern or the values in the solver (memory at 640k)."""
+    a, _ = shell_hessian(2)
+    solver = SparseDirectSolver(a)
+    backend = solver._backend
+    assert np.shares_memory(backend._indices, a.indices)  # type: ignore[attr-defined]
+    assert not hasattr(solver, "_data")
+    solver.factorize(a, shift=1.0)  # the shifted values are a temporary, a is untouched
+    assert np.array_equal(a.data, shell_hessian(2)[0].data)
+    solver.destroy()
+
+
+def test_out_of_core_factor(sphere_10k: tuple[sp.csr_matrix, np.ndarray]) -> None:
+    """ICNTL(22) = 1 keeps the factors on disk: same accuracy, less MUMPS memory."""
+    a, g = sphere_10k
+    memory: dict[bool, float] = {}
+    for ooc in (False, True):
+        solver = SparseDirectSolver(a, LinearSolverOptions(mumps_out_of_core=ooc,
+                                                           mumps_blr=False))
+        report = solver.factorize(a)
+        res = true_residual(a, solver.solve(-g), -g)
+        print(f"out of core {ooc}: MUMPS memory {report.memory_mb} MB, residual {res:.1e}")
+        assert report.success and res < 1e-13 and report.memory_mb is not None
+        memory[ooc] = report.memory_mb
+        solver.destroy()
+    assert memory[True] < 0.5 * memory[False]

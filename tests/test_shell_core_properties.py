@@ -135,7 +135,7 @@ def test_composite_zero_at_rest_and_terms() -> None:
     p, energy = _energy("sphere")
     ev = energy.evaluate(p)
     assert ev.value < 1e-25 and np.abs(ev.grad).max() < 1e-12
-    assert set(ev.terms) == {"membrane_edge", "membrane_area", "bending", "penalty"}
+    assert set(ev.terms) == {"membrane_edge", "membrane_area", "bending", "penalty", "flip_barrier"}
     x = perturb(p, 0.02, 1)
     ev = energy.evaluate(x)
     assert ev.value == pytest.approx(sum(ev.terms.values()), rel=1e-14)
@@ -145,7 +145,7 @@ def test_composite_zero_at_rest_and_terms() -> None:
 def test_zero_stiffness_terms_are_skipped() -> None:
     p, top, rest = random_shell("plate")
     full = ShellEnergy(top, rest, ShellParams(k_L=1.0, k_A=1.0, k_B=1.0, k_P=0.0))
-    only_edges = ShellEnergy(top, rest, ShellParams(k_L=1.0, k_A=0.0, k_B=0.0, k_P=0.0))
+    only_edges = ShellEnergy(top, rest, ShellParams(k_L=1.0, k_A=0.0, k_B=0.0, k_P=0.0, k_F=0.0))
     x = perturb(p, 0.05, 2)
     assert set(only_edges.evaluate(x).terms) == {"membrane_edge"}
     # edges alone: blocks = n diagonal + 2 per edge; hinges add their new (k, l) pairs

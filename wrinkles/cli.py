@@ -71,7 +71,8 @@ def add_scene_arguments(parser: ArgumentParser) -> ArgumentParser:
     parser.add_argument("scene", type=Path, help="scene file, e.g. scenes/default.toml")
     parser.add_argument("--set", dest="overrides", action="append", default=[],
                         metavar="KEY=VALUE", help="override a scene key, value as a TOML "
-                        "literal (repeatable), e.g. --set material.E=2e4")
+                        "literal (repeatable), e.g. --set material.E=2e4; --set quality=preview "
+                        "selects a preset (wrinkles/presets.py), explicit keys win over it")
     return parser
 
 

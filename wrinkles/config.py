@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from models.errors import InputError
+from wrinkles.presets import apply_quality
 
 # --------------------------------------------------------------------------------------------
 # Where a value came from (for error messages)
@@ -375,6 +376,9 @@ def read_toml(path: Path) -> dict[str, Any]:
 def load[T](cls: type[T], path: str | Path, overrides: list[str] | None = None) -> T:
     """Load the dataclass ``cls`` from a TOML file, with ``--set key=value`` overrides.
 
+    A top-level ``quality`` key selects a preset overlay (:mod:`wrinkles.presets`), merged
+    after the overrides into the keys still absent: ``--set`` > file keys > preset > defaults.
+
     Args:
         cls: root dataclass of the document (``wrinkles.scene.Scene`` for scene files).
         path: the TOML file.
@@ -387,6 +391,7 @@ def load[T](cls: type[T], path: str | Path, overrides: list[str] | None = None) 
     path = Path(path)
     doc = read_toml(path)
     keys = [apply_override(doc, text, path.name) for text in overrides or []]
+    apply_quality(doc, path.name)
     return build(cls, doc, "", Source(path.name, frozenset(keys)))
 
 

@@ -16,6 +16,15 @@ gets the shell's penalty force as a nodal load (``Body.set_nodal_load``) and one
 replaces body and shell stages (fixed point of body step and shell solve per frame).
 ``shell.render`` renders the shell (:mod:`wrinkles.render`) when the run completes.
 
+A scene with ``[[rigid.balls]]`` (:mod:`models.rigid`) gets each ball's sphere as a contact of
+the body (after ``[[body.contacts]]``), and the body stage becomes the ``body+rigid`` stage:
+every body step is a coupled step of balls and body (interface iteration ball position <->
+body solve, :class:`models.rigid.BallCoupling`). Its record adds, per frame, each ball's
+centre, velocity, contact force and penetration (max over the frame's steps, fraction of the
+radius), the interface iterations per step and the cumulative momentum balance; the balls'
+state is the checkpoint's ``rigid`` arrays. The shell stages (one- and two-way) call this
+stage in place of the plain body stage.
+
 After every frame the summary and a checkpoint of the body state (:mod:`wrinkles.checkpoint`,
 with the shell's state as its ``shell`` arrays) are written; ``prepare(..., restart=True)``
 continues a run from its last completed frame: body and shell state, frame records and the
@@ -44,6 +53,7 @@ from meshes.tetmesh import TetMesh
 from models.backend import MPI, dolfinx, mesh_from_arrays
 from models.body import Body, StepReport
 from models.errors import InputError, SolverError
+from models.rigid import BallCoupling, RigidStepInfo
 from wrinkles.checkpoint import (
     CHECKPOINT_NAME,
     BodyState,
@@ -180,6 +190,7 @@ class Run:
         records: one record per completed frame.
         facts: run facts for the summary (ranks, sizes, status, start time).
         shell: the embedded shell (``None`` without a ``[shell]`` table).
+        rigid: the rigid balls and their coupling (``None`` without ``[[rigid.balls]]``).
 
     """
 
@@ -191,6 +202,7 @@ class Run:
     records: list[FrameRecord] = field(default_factory=list)
     facts: dict[str, Any] = field(default_factory=dict)
     shell: Shell | None = None
+    rigid: BallCoupling | None = None
 
     @property
     def comm(self) -> MPI.Comm:
@@ -214,12 +226,17 @@ def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False) -> R
     body = make_body(scene, mesh)
     stages: list[tuple[str, Stage]] = [("body", body_stage(body, scene.time.steps_per_frame))]
     run = Run(scene, out, body, stages)
+    if scene.rigid is not None and scene.rigid.balls:
+        run.rigid = BallCoupling(body, scene.rigid, len(scene.body.contacts))
+        run.stages = [("body+rigid", rigid_stage(run.rigid, scene.time.steps_per_frame))]
     run.facts = {"ranks": comm.size, "status": "running", "frames_planned": run.n_frames,
                  "started": datetime.now(UTC).isoformat(timespec="seconds"),
                  "mesh": mesh_facts(mesh, body)}
     state: BodyState | None = None
     if restart:
         state = resume(run)
+        if run.rigid is not None:
+            run.rigid.restore(checkpoint_stage(state, "rigid"))
     else:
         start(run)
     if scene.shell is not None:
@@ -230,8 +247,44 @@ def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False) -> R
 
 
 def make_body(scene: Scene, mesh: dolfinx.mesh.Mesh) -> Body:
-    """Make the scene's body."""
-    return Body(mesh, scene.material, scene.body, scene.newton)
+    """Make the scene's body; the rigid balls' spheres follow the scene's own contacts."""
+    options = scene.body
+    if scene.rigid is not None and scene.rigid.balls:
+        balls = tuple(ball.contact() for ball in scene.rigid.balls)
+        options = dataclasses.replace(options, contacts=(*options.contacts, *balls))
+    return Body(mesh, scene.material, options, scene.newton)
+
+
+def rigid_stage(coupling: BallCoupling, steps: int) -> Stage:
+    """Make the stage that advances balls and body by ``steps`` coupled steps.
+
+    A second call for the same frame (a two-way shell coupling redoing the frame's body steps
+    from its snapshot) first puts the balls back to their state at the frame's start.
+    """
+    start: dict[str, Any] = {}
+
+    def stage(frame: int) -> dict[str, Any]:
+        if start.get("frame") == frame:
+            coupling.restore(start["arrays"])
+        else:
+            start.update(frame=frame, arrays={k: np.array(v, copy=True)
+                                              for k, v in coupling.arrays().items()})
+        infos = [coupling.step() for _ in range(steps)]
+        return {**body_record([i.report for i in infos]), **rigid_record(coupling, infos)}
+
+    return stage
+
+
+def rigid_record(coupling: BallCoupling, infos: list[RigidStepInfo]) -> dict[str, Any]:
+    """Frame record entries of the balls: state, penetration, iterations, momentum balance."""
+    state = coupling.state
+    balls = [{"center": state.center[i].tolist(), "velocity": state.velocity[i].tolist(),
+              "contact_force": state.force[i].tolist(),
+              "penetration": max(info.penetration[i] for info in infos)}
+             for i in range(len(state.center))]
+    return {"balls": balls, "rigid_iterations": [info.iterations for info in infos],
+            "rigid_mismatch": max(info.mismatch for info in infos),
+            "momentum": coupling.balance()}
 
 
 def attach_shell(run: Run, state: BodyState | None) -> None:
@@ -255,7 +308,7 @@ def attach_shell(run: Run, state: BodyState | None) -> None:
                         None if state is None else state.time, run.scene.output.atomic)
     if options.coupling.mode == "two_way":
         steps = run.scene.time.steps_per_frame
-        body = body_stage(run.body, steps)
+        body = run.stages[0][1]  # the body stage, or the body+rigid stage
         stage = (implicit_stage(shell, run.body, body, write)
                  if options.coupling.scheme == "implicit"
                  else two_way_stage(shell, run.body, steps, body, write))
@@ -268,10 +321,16 @@ def attach_shell(run: Run, state: BodyState | None) -> None:
 
 def checkpoint_shell(state: BodyState) -> dict[str, np.ndarray]:
     """Return the shell arrays of a checkpoint; InputError if it has none."""
-    if "shell" not in state.arrays:
-        raise InputError(f"{CHECKPOINT_NAME}: the checkpoint holds no shell state (written "
-                         "by a run without [shell] or by an older version); rerun from the start")
-    return state.arrays["shell"]
+    return checkpoint_stage(state, "shell")
+
+
+def checkpoint_stage(state: BodyState, stage: str) -> dict[str, np.ndarray]:
+    """Return the arrays of ``stage`` in a checkpoint; InputError if it has none."""
+    if stage not in state.arrays:
+        raise InputError(f"{CHECKPOINT_NAME}: the checkpoint holds no {stage} state (written "
+                         f"by a run without [{stage}] or by an older version); rerun from the "
+                         "start")
+    return state.arrays[stage]
 
 
 def start(run: Run) -> None:
@@ -362,6 +421,8 @@ def save_frame(run: Run, frame: int) -> None:
         state = gather_state(run.body, frame)
         if state is not None and run.shell is not None:
             state = with_arrays(state, "shell", shell_arrays(run.shell))
+        if state is not None and run.rigid is not None:
+            state = with_arrays(state, "rigid", run.rigid.arrays())
         if state is not None:
             write_state(run.out / CHECKPOINT_NAME, state)
 

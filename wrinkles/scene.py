@@ -10,6 +10,7 @@ dataclass of the code that uses it::
     [time]      TimeOptions    -- number of frames (or end time), body steps per frame
     [output]    OutputOptions  -- which files, every N frames
     [shell]     ShellOptions   -- the embedded shell (absent = body only), wrinkles/shell_stage.py
+    [rigid]     RigidOptions   -- rigid balls ([[rigid.balls]]) coupled two-way, models/rigid.py
 
 Tables that are absent keep their defaults; optional physics is off unless the scene asks for
 it: no ``[[body.contacts]]`` means no obstacle, no ``[[body.pins]]`` no pins, and
@@ -29,6 +30,7 @@ from typing import Any
 from models.body import BodyOptions
 from models.errors import InputError
 from models.materials import Material
+from models.rigid import RigidOptions, scheme
 from solvers.body_newton import NewtonOptions
 from wrinkles.config import Source, build, call_kwargs, load, to_dict
 from wrinkles.output import OutputOptions
@@ -117,6 +119,9 @@ class Scene:
         output: output files and their frequency.
         shell: the embedded shell and its coupling; ``None`` (no ``[shell]`` table) runs the
             body only.
+        rigid: rigid balls that fall onto the body (each adds a sphere contact after the
+            ``[[body.contacts]]``) and their coupling; ``None`` (no ``[rigid]`` table): none.
+            Needs ``body.dynamics`` implicit Euler or Newmark (the balls use the same scheme).
 
     """
 
@@ -128,6 +133,14 @@ class Scene:
     time: TimeOptions = field(default_factory=TimeOptions)
     output: OutputOptions = field(default_factory=OutputOptions)
     shell: ShellOptions | None = None
+    rigid: RigidOptions | None = None
+
+    def __post_init__(self) -> None:
+        if self.rigid is not None and self.rigid.balls:
+            try:
+                scheme(self.body.dynamics)
+            except InputError as exc:
+                raise InputError(f"rigid.balls: {exc}") from None
 
 
 # --------------------------------------------------------------------------------------------
@@ -187,6 +200,13 @@ def with_frames(scene: Scene, frames: int) -> Scene:
 
 
 def scene_dict(scene: Scene) -> dict[str, Any]:
-    """Return the resolved scene as JSON-able data (round-trips via :func:`scene_from_dict`)."""
-    return to_dict(scene)
+    """Return the resolved scene as JSON-able data (round-trips via :func:`scene_from_dict`).
+
+    ``rigid`` appears only when the scene has a ``[rigid]`` table, so the summaries of scenes
+    without rigid bodies keep their layout (and restart from runs of earlier versions).
+    """
+    data: dict[str, Any] = to_dict(scene)
+    if data.get("rigid") is None:
+        data.pop("rigid", None)
+    return data
 

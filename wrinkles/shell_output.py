@@ -3,13 +3,15 @@
 The shell lives on every rank as plain numpy arrays (it is not a dolfinx mesh), so it is
 written by rank 0 with h5py: the rest mesh once (``/Mesh/geometry`` (n, 3) float64,
 ``/Mesh/topology`` (m, 3) int64, ``/Mesh/cluster_id`` (n,) int64, the cluster partition), then
-per step ``/Step_<k>/displacement`` (n, 3) = x - rest and
-``/Step_<k>/bending_energy_density`` (n,) [J/m^2]. Each step is written through the same
-kill-safe transaction as the body series (:func:`wrinkles.output.begin_frame` /
-:func:`wrinkles.output.commit_frame`: copy to ``.work/``, append, atomic rename of the HDF5
-file, then the XML through a temporary file + ``os.replace``), so a run killed at any moment
-keeps every completed frame readable. On ``--resume`` the steps after the checkpoint are
-dropped (:func:`wrinkles.output.drop_steps_after`) and the rerun frames replace them.
+step ``k`` in its own file ``shell.steps/step_<k>.h5`` (:func:`wrinkles.output.step_file`):
+``/displacement`` (n, 3) = x - rest and ``/bending_energy_density`` (n,) [J/m^2]. A step is
+written to ``.work/`` and moved to its place by ``os.replace``, then the XML is rewritten
+through a temporary file + ``os.replace`` (the body series does the same), so a run killed at
+any moment keeps every completed frame readable, and a frame costs O(its own size) in HDF5
+bytes (series of session 1 stored every step in ``shell.h5`` as ``/Step_<k>/...`` and copied
+the whole file per frame; they are still read and resumed). On ``--resume`` the steps after
+the checkpoint are dropped (:func:`wrinkles.output.drop_steps_after`) and the rerun frames
+replace them.
 The XML is XDMF 3: one temporal collection of uniform
 grids, each referencing the one stored mesh and carrying the step's ``Time`` and its three
 node attributes; ParaView and ``meshio.xdmf.TimeSeriesReader`` read it.
@@ -17,6 +19,7 @@ node attributes; ParaView and ``meshio.xdmf.TimeSeriesReader`` read it.
 
 from __future__ import annotations
 
+import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,13 +28,7 @@ import h5py
 import numpy as np
 
 from models.errors import InputError
-from wrinkles.output import (
-    WORK_DIR,
-    begin_frame,
-    commit_frame,
-    drop_steps_after,
-    write_xml_atomic,
-)
+from wrinkles.output import WORK_DIR, XI, XML_HEADER, drop_steps_after, step_file, write_text_atomic
 
 SHELL_XDMF_NAME = "shell.xdmf"
 FIELD_TYPES: dict[str, str] = {"displacement": "Vector", "bending_energy_density": "Scalar"}
@@ -68,13 +65,14 @@ class ShellSeries:
     """Writer of the shell time series (call its methods on rank 0 only).
 
     Args:
-        path: the ``.xdmf`` file; the ``.h5`` file goes beside it.
+        path: the ``.xdmf`` file; the mesh's ``.h5`` file and ``.steps/`` go beside it.
         rest: ``(n, 3)`` rest positions of the shell.
         faces: ``(m, 3)`` triangles.
         cluster_id: ``(n,)`` cluster of each vertex (nearest centre).
         resume_after: ``None`` to start a new series; for a restart, the time [s] of the
             restored state: the existing series is kept without its steps after that time.
-        atomic: write each step as a kill-safe transaction (``OutputOptions.atomic``).
+        atomic: write the XML through a temporary file and ``os.replace``
+            (``OutputOptions.atomic``); steps always go to their own file.
 
     Raises:
         InputError: (resume) no series in ``path``, or its rest mesh is another one.
@@ -85,16 +83,20 @@ class ShellSeries:
                  cluster_id: np.ndarray, resume_after: float | None = None,
                  atomic: bool = True) -> None:
         self.path, self.h5_path, self.atomic = path, path.with_suffix(".h5"), atomic
-        self.work = path.parent / WORK_DIR / path.name
+        self.work = path.parent / WORK_DIR / "shell_step.h5"
         self.n, self.m = rest.shape[0], faces.shape[0]
         self.times: list[float] = []
+        self.sources: list[tuple[str, str]] = []
+        self._grids: list[str] = []
         if resume_after is not None:
             self._resume(np.asarray(rest, dtype=np.float64), resume_after)
             return
-        with h5py.File(self.h5_path, "w") as h5:
+        self.work.parent.mkdir(parents=True, exist_ok=True)
+        with h5py.File(self.work, "w") as h5:
             h5["Mesh/geometry"] = np.asarray(rest, dtype=np.float64)
             h5["Mesh/topology"] = np.asarray(faces, dtype=np.int64)
             h5["Mesh/cluster_id"] = np.asarray(cluster_id, dtype=np.int64)
+        os.replace(self.work, self.h5_path)
         self._write_xml()
 
     def _resume(self, rest: np.ndarray, t: float) -> None:
@@ -106,26 +108,27 @@ class ShellSeries:
         if stored.shape != rest.shape or not np.array_equal(stored, rest):
             raise InputError(f"{self.path}: its rest mesh differs from this scene's shell")
         drop_steps_after(self.path, t)
-        self.times = [float(x.get("Value", "0")) for x in ET.parse(self.path).iter("Time")]
+        self.times, self.sources = step_sources(self.path)
         self._write_xml()
 
     def write(self, frame: ShellFrame) -> None:
-        """Append one step: HDF5 data in a work copy, renamed over, then the XML."""
-        step = f"Step_{len(self.times)}"
-        target = begin_frame(self.path, self.work, self.atomic)
-        with h5py.File(target.with_suffix(".h5"), "a") as h5:
-            if step in h5:  # left by a kill between the HDF5 rename and the XML commit
-                del h5[step]
-            h5[f"{step}/displacement"] = np.asarray(frame.displacement, dtype=np.float64)
-            h5[f"{step}/bending_energy_density"] = np.asarray(frame.bending_energy_density,
-                                                              dtype=np.float64)
+        """Write one step into its own HDF5 file (work file + rename), then the XML."""
+        dest = step_file(self.path, len(self.times))
+        self.work.parent.mkdir(parents=True, exist_ok=True)
+        with h5py.File(self.work, "w") as h5:
+            h5["displacement"] = np.asarray(frame.displacement, dtype=np.float64)
+            h5["bending_energy_density"] = np.asarray(frame.bending_energy_density,
+                                                      dtype=np.float64)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(self.work, dest)
         self.times.append(float(frame.time))
-        commit_frame(self.path, self.work, self.atomic, self._write_xml)
+        self.sources.append((dest.relative_to(self.path.parent).as_posix(), ""))
+        self._write_xml()
 
-    def _grid(self, parent: ET.Element, index: int) -> None:
-        """One uniform grid: the stored mesh, the step's time and attributes."""
+    def _grid(self, index: int) -> str:
+        """One uniform grid as XML text: the stored mesh, the step's time and attributes."""
         h5 = self.h5_path.name
-        grid = ET.SubElement(parent, "Grid", Name=f"step_{index}", GridType="Uniform")
+        grid = ET.Element("Grid", Name=f"step_{index}", GridType="Uniform")
         topo = ET.SubElement(grid, "Topology", TopologyType="Triangle",
                              NumberOfElements=str(self.m), NodesPerElement="3")
         _item(topo, h5, "/Mesh/topology", (self.m, 3), "Int")
@@ -135,38 +138,63 @@ class ShellSeries:
         cid = ET.SubElement(grid, "Attribute", Name="cluster_id", AttributeType="Scalar",
                             Center="Node")
         _item(cid, h5, "/Mesh/cluster_id", (self.n,), "Int")
+        source, prefix = self.sources[index]
         for name, kind in FIELD_TYPES.items():
             attr = ET.SubElement(grid, "Attribute", Name=name, AttributeType=kind, Center="Node")
             shape = (self.n, 3) if kind == "Vector" else (self.n,)
-            _item(attr, h5, f"/Step_{index}/{name}", shape, "Float")
+            _item(attr, source, f"{prefix}/{name}", shape, "Float")
+        ET.indent(grid, "  ", level=3)
+        return "      " + ET.tostring(grid, encoding="unicode").rstrip() + "\n"
 
     def _write_xml(self) -> None:
-        """Rewrite the XML (all steps so far) atomically."""
-        root = ET.Element("Xdmf", Version="3.0")
-        domain = ET.SubElement(root, "Domain")
-        collection = ET.SubElement(domain, "Grid", Name="shell", GridType="Collection",
-                                   CollectionType="Temporal")
-        for index in range(len(self.times)):
-            self._grid(collection, index)
-        write_xml_atomic(ET.ElementTree(root), self.path)
+        """Rewrite the XML (all steps so far), atomically unless ``atomic`` is off.
+
+        The text of the steps already written is kept (``_grids``), so a frame serialises
+        only its own grid and writes the concatenation (about 1 kB per step).
+        """
+        self._grids.extend(self._grid(k) for k in range(len(self._grids), len(self.times)))
+        text = (f'{XML_HEADER}<Xdmf Version="3.0" xmlns:xi="{XI[1:-1]}">\n  <Domain>\n'
+                '    <Grid Name="shell" GridType="Collection" CollectionType="Temporal">\n'
+                + "".join(self._grids) + "    </Grid>\n  </Domain>\n</Xdmf>\n")
+        write_text_atomic(self.path, text, self.atomic)
+
+
+def step_sources(path: Path) -> tuple[list[float], list[tuple[str, str]]]:
+    """Return the times and ``(file, group)`` of the steps of a shell series (its XML).
+
+    ``group`` is the HDF5 group holding the step's fields in ``file`` (``""`` for per-step
+    files, ``/Step_<k>`` for series written before them).
+    """
+    times, sources = [], []
+    for grid in ET.parse(path).getroot().iter("Grid"):
+        time = grid.find("Time")
+        item = grid.find("Attribute[@Name='displacement']/DataItem")
+        if time is None or item is None or not item.text:
+            continue
+        name, _, dataset = item.text.partition(":")
+        times.append(float(time.get("Value", "0")))
+        sources.append((name.strip(), dataset.strip().rsplit("/", 1)[0]))
+    return times, sources
 
 
 def read_shell_series(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray,
                                            list[ShellFrame]]:
-    """Read a shell series back: ``(rest, faces, cluster_id, frames)`` (h5py + the XML times).
+    """Read a shell series back: ``(rest, faces, cluster_id, frames)`` (h5py + the XML).
 
     Raises:
         FileNotFoundError: no such series.
 
     """
-    times = [float(t.get("Value", "0")) for t in ET.parse(path).getroot().iter("Time")]
+    times, sources = step_sources(path)
     with h5py.File(path.with_suffix(".h5"), "r") as h5:
         rest, faces = h5["Mesh/geometry"][...], h5["Mesh/topology"][...]
         cluster_id = h5["Mesh/cluster_id"][...]
-        frames = [ShellFrame(t, h5[f"Step_{k}/displacement"][...],
-                             h5[f"Step_{k}/bending_energy_density"][...])
-                  for k, t in enumerate(times)]
+    frames = []
+    for t, (name, group) in zip(times, sources, strict=True):
+        with h5py.File(path.parent / name, "r") as h5:
+            frames.append(ShellFrame(t, h5[f"{group}/displacement"][...],
+                                     h5[f"{group}/bending_energy_density"][...]))
     return rest, faces, cluster_id, frames
 
 
-__all__ = ["SHELL_XDMF_NAME", "ShellFrame", "ShellSeries", "read_shell_series"]
+__all__ = ["SHELL_XDMF_NAME", "ShellFrame", "ShellSeries", "read_shell_series", "step_sources"]

@@ -46,9 +46,9 @@ from models.backend import MPI
 from models.body import Body
 from models.coupling import (
     CouplingOptions,
+    PenaltyCoupling,
     body_force_function,
     penalty_force,
-    penalty_term,
 )
 from models.embedding.clusters import ClusterOptions, Clusters, build_clusters
 from models.embedding.embedding import (
@@ -65,6 +65,7 @@ from models.shell.energy import ShellEnergy, ShellParams
 from models.shell.rest import RestState
 from models.shell.stiffness import ShellMaterial, shell_stiffness
 from models.shell.topology import ShellTopology
+from solvers.multigrid import ShellHierarchy
 from solvers.shell_newton import (
     ShellNewtonOptions,
     ShellNewtonSolver,
@@ -208,6 +209,8 @@ class Shell:
         facts: set-up numbers for the summary.
         force: ``(n, 3)`` relaxed penalty force on the target fed back to the body (two-way
             coupling; zero otherwise).
+        coupling: constant part of the implicit coupling term (built on first use,
+            :func:`penalty_coupling`).
 
     """
 
@@ -225,6 +228,7 @@ class Shell:
     gradient_scale: float = 0.0
     facts: dict[str, Any] = field(default_factory=dict)
     force: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    coupling: PenaltyCoupling | None = None
 
     def __post_init__(self) -> None:
         if self.force.shape != self.rest.shape:
@@ -251,7 +255,8 @@ def build_shell(body: Body, options: ShellOptions, material: Material) -> Shell:
     clusters = build_clusters(rest, sub.faces, cluster_options(options, material))
     params = shell_params(options, a)
     energy = ShellEnergy(topology, RestState.from_positions(topology, rest), params, clusters.H)
-    solver = ShellNewtonSolver(energy, options.newton)  # type: ignore[arg-type]
+    solver = ShellNewtonSolver(energy, options.newton,  # type: ignore[arg-type]
+                               hierarchy=ShellHierarchy(sub))
     facts = {"vertices": int(rest.shape[0]), "faces": int(sub.faces.shape[0]),
              "coarse_surface_vertices": int(surface.vertices.shape[0]),
              "mean_edge_length": a, "k_L": params.k_L, "k_A": params.k_A,
@@ -480,13 +485,20 @@ def two_way_stage(shell: Shell, body: Body, steps: int,
     return stage
 
 
+def penalty_coupling(shell: Shell, body: Body) -> PenaltyCoupling:
+    """Return the shell's :class:`models.coupling.PenaltyCoupling` (assembled on first use)."""
+    if shell.coupling is None:
+        shell.coupling = PenaltyCoupling.build(shell.embedding, shell.clusters.H,
+                                               shell.params.k_P, body.V)
+    return shell.coupling
+
+
 def coupled_force(shell: Shell, body: Body) -> list[float]:
     """Total force [N] of the implicit penalty term on the body, ``-sum_j (K u - c)_j``."""
-    term = penalty_term(shell.embedding, shell.clusters.H, shell.params.k_P,
-                        shell.x - shell.rest, body.V)
+    term = penalty_coupling(shell, body).term(shell.x - shell.rest)
     g = term.gradient(body.u.x.petsc_vec)
     local = g.array.reshape(-1, 3).sum(axis=0)
-    for obj in (g, term.K, term.c):
+    for obj in (g, term.c):
         obj.destroy()
     return [-float(v) for v in body.mesh.comm.allreduce(local, op=MPI.SUM)]
 
@@ -529,7 +541,8 @@ def implicit_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mapping
     """Stage replacing body + shell: alternate minimisation of body and shell energies.
 
     Iteration ``k`` redoes the frame's body steps from the saved state with the penalty of
-    the current shell ``x_{k-1}`` as an implicit quadratic term (:func:`penalty_term`), then
+    the current shell ``x_{k-1}`` as an implicit quadratic term (its constant matrix built
+    once, :func:`penalty_coupling`; :func:`models.coupling.penalty_term`), then
     solves the shell for the new target: block Gauss-Seidel on the total energy
     ``Pi(u) + W(x, y(u))``, each half-step a minimisation, so the total energy decreases
     monotonically. Ends when ``max|u_k - u_{k-1}| <= rtol max|u_k|`` or ``max_iterations``.
@@ -543,15 +556,14 @@ def implicit_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mapping
 
     def stage(frame: int) -> StageRecord:
         saved, change, k = body.snapshot(), float("inf"), 0
+        coupling = penalty_coupling(shell, body)
         record: dict[str, Any] = {}
         report = None
         aitken = Aitken()
         for k in range(1, opts.max_iterations + 1):  # noqa: B007  (k is reported)
             x_in = shell.x.copy()
             u_old = body.u.x.array.copy()
-            body.set_quadratic_energy(penalty_term(shell.embedding, shell.clusters.H,
-                                                   shell.params.k_P, shell.x - shell.rest,
-                                                   body.V))
+            body.set_quadratic_energy(coupling.term(shell.x - shell.rest))
             body.restore(saved)
             record = dict(body_stage(frame))
             change = _relative_change(comm, body.u.x.array, u_old)
@@ -561,7 +573,7 @@ def implicit_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mapping
             if opts.aitken:
                 shell.x = aitken.relax(x_in, shell.x)
         assert report is not None  # max_iterations >= 1
-        shell.force = penalty_force(shell.clusters.H, shell.params.k_P, shell.x, shell.y)
+        shell.force = penalty_force(coupling.op, shell.params.k_P, shell.x, shell.y)
         write(frame, body.t)
         return {**record, **shell_record(shell, report), "coupling_iterations": k,
                 "coupling_change": change,

@@ -19,6 +19,16 @@ map, :meth:`StencilPattern.entry_map` expands it); the kernel adds ``a L_r + b``
 ``row_len[r] = L_r``. Indices are int32 while ``nnz < 2^31`` (scipy keeps int32 arrays as
 given), else int64.
 
+Fused scatter (:class:`HessianSink`): a term kernel given a sink adds each local block into
+``csr.data`` as soon as it is computed (:func:`scatter_block`, the same loop
+:func:`assemble` runs) instead of storing all blocks first. The stored blocks are large
+(``(Hn, 12, 12)`` float64 for the hinges: 3.5 KB per vertex, 565 MB at 160k vertices) and
+were written once and read back once per Newton iteration; the sink removes that round trip
+through memory. Within a term the additions into each entry happen in the same order as in
+:func:`assemble` (bitwise the same Hessian, ``tests/test_reorder.py``); in
+:class:`models.shell.energy.ShellEnergy` the fused terms (edges, hinges) are added before the
+stored ones (area, flip barrier), which changes the sum by round-off only.
+
 Hessian modes (:data:`HessianMode`) and the per-block PSD projection
 (:func:`project_psd_blocks`) shared by all terms also live here.
 """
@@ -85,6 +95,39 @@ class ScatterMap:
 
     stencils: np.ndarray
     base: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class HessianSink:
+    """Where a term kernel adds its local blocks directly (fused assembly).
+
+    Attributes:
+        data: (nnz,) float64 ``csr.data`` of the pattern, added into in place.
+        base: (m, s, s) int64 block offsets of the term's stencils (:attr:`ScatterMap.base`).
+        row_len: (n,) int64 scalar entries per scalar row (:attr:`StencilPattern.row_len`).
+
+    """
+
+    data: np.ndarray
+    base: np.ndarray
+    row_len: np.ndarray
+
+    @classmethod
+    def for_map(cls, pattern: StencilPattern, smap: ScatterMap, data: np.ndarray) -> HessianSink:
+        """Sink adding the blocks of ``smap``'s stencils into ``data`` (pattern's layout)."""
+        if data.shape != (pattern.nnz,) or data.dtype != np.float64:
+            raise InputError(f"data: expected ({pattern.nnz},) float64, got {data.shape} "
+                             f"{data.dtype}")
+        return cls(data, smap.base, pattern.row_len)
+
+    @staticmethod
+    def unpacked(sink: HessianSink | None, s: int) -> tuple[bool, np.ndarray, np.ndarray,
+                                                            np.ndarray]:
+        """``(fused, data, base, row_len)`` for a numba kernel; empty arrays when no sink."""
+        if sink is None:
+            return (False, np.empty(0), np.empty((0, s, s), dtype=np.int64),
+                    np.empty(0, dtype=np.int64))
+        return True, sink.data, sink.base, sink.row_len
 
 
 @dataclass(frozen=True, eq=False)
@@ -256,25 +299,32 @@ def _extra_offsets(coo: sp.coo_matrix, keys: np.ndarray, off: np.ndarray,
     return off[q][:, None] + k * row_len[coo.row][:, None] + k
 
 
+@numba.njit(cache=True, inline="always")
+def scatter_block(data: np.ndarray, stencil: np.ndarray, base: np.ndarray, row_len: np.ndarray,
+                  block: np.ndarray, scale: float) -> None:  # pragma: no cover - numba
+    """``data[base[p, q] + a L_r + b] += scale * block[3 p + a, 3 q + b]`` for one stencil."""
+    s = stencil.shape[0]
+    for p in range(s):
+        L = row_len[stencil[p]]
+        for a in range(3):  # one scalar row at a time: its s blocks are close in memory
+            for q in range(s):
+                o = base[p, q] + a * L
+                for b in range(3):
+                    data[o + b] += scale * block[3 * p + a, 3 * q + b]
+
+
 @numba.njit(cache=True, fastmath=False)
 def _scatter(data: np.ndarray, stencils: np.ndarray, base: np.ndarray, row_len: np.ndarray,
              blocks: np.ndarray, scale: float) -> None:  # pragma: no cover - numba
     """data[base + a L_r + b] += scale * blocks[t, 3 a_loc + a, 3 b_loc + b] for all stencils."""
-    m, s = stencils.shape
-    for t in range(m):
-        for p in range(s):
-            L = row_len[stencils[t, p]]
-            for a in range(3):  # one scalar row at a time: its s blocks are close in memory
-                for q in range(s):
-                    o = base[t, p, q] + a * L
-                    for b in range(3):
-                        data[o + b] += scale * blocks[t, 3 * p + a, 3 * q + b]
+    for t in range(stencils.shape[0]):
+        scatter_block(data, stencils[t], base[t], row_len, blocks[t], scale)
 
 
 def assemble(pattern: StencilPattern,
              contributions: Sequence[tuple[ScatterMap, np.ndarray]
                                      | tuple[ScatterMap, np.ndarray, float]],
-             base: np.ndarray | None = None) -> sp.csr_matrix:
+             base: np.ndarray | None = None, out: np.ndarray | None = None) -> sp.csr_matrix:
     """Assemble local Hessian blocks into the fixed pattern.
 
     ``H = base + sum_i scale_i * sum_t P_t^T blocks_i[t] P_t`` where ``P_t`` selects the dofs of
@@ -285,12 +335,17 @@ def assemble(pattern: StencilPattern,
         contributions: ``(map, blocks)`` or ``(map, blocks, scale)`` per term; ``blocks`` is
             (m, 3 s, 3 s) matching ``map.stencils``.
         base: Optional (nnz,) data added first (e.g. the constant penalty Hessian).
+        out: Optional (nnz,) data array to add into and wrap (already holding ``base`` and
+            the blocks fused terms scattered through a :class:`HessianSink`); ``base`` must
+            then be None.
 
     Returns:
         csr_matrix whose ``indptr``/``indices`` are the pattern's own arrays (same objects).
 
     """
-    data = np.zeros(pattern.nnz) if base is None else base.copy()
+    if out is not None and base is not None:
+        raise InputError("assemble: give either base or out, not both")
+    data = out if out is not None else (np.zeros(pattern.nnz) if base is None else base.copy())
     for item in contributions:
         smap, blocks = item[0], item[1]
         scale = float(item[2]) if len(item) > 2 else 1.0

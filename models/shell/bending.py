@@ -52,15 +52,25 @@ from numba import njit
 from models.errors import InputError
 from models.shell.assembly import (
     HessianMode,
+    HessianSink,
     TermEval,
+    _project_psd,
     check_hessian_mode,
     check_order,
     project_psd_blocks,
+    scatter_block,
+    translation_complement,
 )
-from models.shell.hinge_angle import _theta_derivs_one, check_hinge_arrays, hinge_angles
+from models.shell.hinge_angle import (
+    _theta_derivs_one,
+    _theta_one,
+    check_hinge_arrays,
+    hinge_angles,
+)
 
 _MODE_CODE = {"exact": 0, "gauss_newton": 1, "projected": 0}
-
+_HINGE_Q = translation_complement(4)
+"""Basis (12, 9) orthogonal to translations for the reduced PSD clamp of hinge blocks."""
 
 
 def hinge_weights(x_rest: np.ndarray, hinges: np.ndarray) -> np.ndarray:
@@ -93,14 +103,24 @@ def hinge_weights(x_rest: np.ndarray, hinges: np.ndarray) -> np.ndarray:
 @njit(cache=True, error_model="numpy")
 def _bending_kernel(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights: np.ndarray,
                     order: int, mode: int, grad: np.ndarray, blocks: np.ndarray,
-                    energies: np.ndarray) -> float:  # pragma: no cover - numba
-    """Fused pass: per-hinge energy, gradient scatter and 12x12 block (mode 0 exact, 1 GN)."""
+                    energies: np.ndarray, fused: bool, data: np.ndarray, base: np.ndarray,
+                    row_len: np.ndarray, project: bool,
+                    q: np.ndarray) -> float:  # pragma: no cover - numba
+    """Fused pass: per-hinge energy, gradient scatter and 12x12 block (mode 0 exact, 1 GN).
+
+    With ``fused`` the block is built in a scratch array, PSD-projected if ``project`` (reduced
+    clamp with basis ``q``) and added into ``data`` (:class:`HessianSink`) instead of stored.
+    """
     g = np.empty(12)
-    scratch = np.empty((12, 12))
+    scratch3 = np.empty((1, 12, 12))
+    scratch = scratch3[0]
     total = 0.0
     for h in range(hinges.shape[0]):
-        hb = blocks[h] if order >= 2 else scratch
-        theta = _theta_derivs_one(x, hinges[h], g, hb, order >= 2 and mode == 0)
+        hb = blocks[h] if (order >= 2 and not fused) else scratch
+        if order == 0:
+            theta = _theta_one(x, hinges[h])
+        else:
+            theta = _theta_derivs_one(x, hinges[h], g, hb, order >= 2 and mode == 0)
         d = theta - theta0[h]
         energies[h] = weights[h] * d * d
         total += energies[h]
@@ -111,6 +131,10 @@ def _bending_kernel(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weigh
                     grad[3 * hinges[h, m] + k] += c * g[3 * m + k]
         if order >= 2:
             _fill_block(hb, g, 2.0 * weights[h], d, mode == 0)
+            if fused:
+                if project:
+                    _project_psd(scratch3, q)
+                scatter_block(data, hinges[h], base[h], row_len, scratch, 1.0)
     return total
 
 
@@ -135,7 +159,8 @@ def _check_rest(hinges: np.ndarray, theta0: np.ndarray, weights: np.ndarray) -> 
 
 
 def hinge_bending(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights: np.ndarray,
-                  *, order: int = 2, hessian_mode: HessianMode = "exact") -> TermEval:
+                  *, order: int = 2, hessian_mode: HessianMode = "exact",
+                  sink: HessianSink | None = None) -> TermEval:
     """Hinge bending energy ``W_B = sum_h w_h (theta_h - theta0_h)^2`` and its derivatives.
 
     One fused numba pass computes, per hinge, the angle, its exact gradient and (order 2)
@@ -151,6 +176,8 @@ def hinge_bending(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights
         order: 0 value, 1 value + gradient, 2 value + gradient + Hessian blocks.
         hessian_mode: "exact", "gauss_newton" (``2 w grad theta grad theta^T``) or
             "projected" (exact block with negative eigenvalues clamped to 0).
+        sink: If given (order 2), each block is added straight into ``sink.data`` (fused
+            assembly, :class:`models.shell.assembly.HessianSink`) and ``blocks`` is None.
 
     Returns:
         TermEval with ``value``, ``grad`` (3 n,), ``blocks`` (Hn, 12, 12) and
@@ -164,18 +191,21 @@ def hinge_bending(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights
     check_hinge_arrays(x, hinges)
     _check_rest(hinges, theta0, weights)
     grad = np.zeros(x.size if order >= 1 else 0)
-    blocks = np.empty((hinges.shape[0] if order >= 2 else 0, 12, 12))
+    fused, data, base, row_len = HessianSink.unpacked(sink if order >= 2 else None, 4)
+    blocks = np.empty((hinges.shape[0] if order >= 2 and not fused else 0, 12, 12))
     energies = np.empty(hinges.shape[0])
     value = _bending_kernel(np.ascontiguousarray(x), hinges, theta0, weights, order,
-                            _MODE_CODE[hessian_mode], grad, blocks, energies)
+                            _MODE_CODE[hessian_mode], grad, blocks, energies, fused, data,
+                            base, row_len, hessian_mode == "projected", _HINGE_Q)
     if not np.isfinite(value):
         if not np.all(np.isfinite(x)):
             raise InputError("x: non-finite coordinate")
         value = np.inf  # a face collapsed to zero area: reject the state
-    if order >= 2 and hessian_mode == "projected":
+    if order >= 2 and hessian_mode == "projected" and not fused:
         project_psd_blocks(blocks)  # hinge blocks annihilate translations: reduced 9x9 clamp
     return TermEval(value=float(value), grad=grad if order >= 1 else None,
-                    blocks=blocks if order >= 2 else None, element_values=energies)
+                    blocks=blocks if order >= 2 and not fused else None,
+                    element_values=energies)
 
 
 def bending_energy_density(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray,

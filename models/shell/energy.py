@@ -1,9 +1,17 @@
-"""The composite shell energy W = k_L W_L + k_A W_A + k_B W_B + k_P W_P (Remillard & Kry 2013).
+"""The composite shell energy W = k_L W_L + k_A W_A + k_B W_B + k_P W_P + k_F W_F.
 
 * ``W_L = sum_e (l_e - l0_e)^2 / l0_e`` edge membrane (:mod:`models.shell.membrane`),
 * ``W_A = sum_T (A_T - A0_T)^2 / A0_T`` area membrane (optional, ``k_A = 0`` switches it off),
 * ``W_B = sum_h w_h (theta_h - theta0_h)^2`` hinge bending (:mod:`models.shell.bending`),
-* ``W_P = ||H (x - y)||^2`` cluster penalty to the embedded target y (:mod:`models.shell.penalty`).
+* ``W_P = ||H (x - y)||^2`` cluster penalty to the embedded target y (:mod:`models.shell.penalty`),
+* ``W_F = sum_T w_T b(s_T)`` flip barrier (:mod:`models.shell.barrier`, ours, not in the draft)
+  over the faces of rest quality below ``flip_quality`` (by default every face):
+  zero while such a face keeps ``s_T = n_T . r_T / (2 A0_T) >= flip_activation`` and +inf at
+  ``s_T <= 0``, so it never collapses or turns over. The reference normals ``r_T`` are the unit
+  normals of the faces on the penalty target y (the rest normals until :meth:`set_target`), so
+  the barrier follows the body's rotations.
+
+The terms of Remillard & Kry 2013 are the first four.
 
 A term whose stiffness is 0 is skipped entirely (no kernel call, no stencils in the pattern).
 :meth:`ShellEnergy.evaluate` returns the value, the flat gradient and the Hessian assembled
@@ -25,6 +33,7 @@ import scipy.sparse as sp
 from models.errors import InputError
 from models.shell.assembly import (
     HessianMode,
+    HessianSink,
     ScatterMap,
     StencilPattern,
     TermEval,
@@ -32,11 +41,17 @@ from models.shell.assembly import (
     check_hessian_mode,
     check_order,
 )
+from models.shell.barrier import (
+    barrier_weights,
+    check_activation,
+    flip_barrier,
+    reference_normals,
+)
 from models.shell.bending import bending_energy_density, hinge_bending
 from models.shell.dofs import check_positions
 from models.shell.membrane import area_membrane, edge_membrane
 from models.shell.penalty import PenaltyOperator, penalty_factor, penalty_gram, penalty_term
-from models.shell.rest import RestState
+from models.shell.rest import RestState, face_quality
 from models.shell.topology import ShellTopology
 
 PenaltyHessian = Literal["assembled", "low_rank"]
@@ -48,13 +63,28 @@ class ShellParams:
 
     Defaults follow the author's public code (jiongchen/bigbang, test_emb_thin_shell.cc):
     edge 1e3, bending 1e-1, penalty 1e3; the area term is off. Physical values come from
-    :mod:`models.shell.stiffness`.
+    :mod:`models.shell.stiffness`. The flip barrier is on for every face (``k_F = 1e3``,
+    active below ``s = 0.1``); it is exactly zero unless a face shrinks / tilts to a tenth of
+    its rest area projected on its reference normal. It is what lets accepted rest slivers
+    converge (issue 8, ``tests/test_extremes_matrix.py``: without it the sliver scene
+    stagnated at rest qualities q = 0.0023 .. 0.465, q = 0.498 converged). It covers regular
+    faces too because the exact-Hessian Newton folds those as well: with the barrier on the
+    faces of q < 0.5 only, a q >= 0.5 neighbour of the q = 0.465 sliver collapsed (s = 5e-11,
+    200 iterations), and in frame 3 of ``scenes/default.toml`` the converged shell without the
+    barrier has a face next to the edge y = z = 0 turned over (s = -0.26); with it that frame
+    is fold-free at +1.4 % shell energy (frames 1-2 bitwise unchanged, frame 4 -0.007 %).
+    ``flip_quality = 0.5`` restricts it to near-degenerate faces, ``k_F = 0`` switches it off.
 
     Attributes:
         k_L: Edge membrane stiffness (energy / length; >= 0, 0 = off).
         k_A: Area membrane stiffness (energy / area; >= 0, 0 = off).
         k_B: Bending stiffness (energy; >= 0, 0 = off).
         k_P: Penalty stiffness (energy / length^2; >= 0, 0 = off; needs H).
+        k_F: Flip barrier stiffness (energy / area; >= 0, 0 = off; :mod:`models.shell.barrier`).
+        flip_activation: Ratio ``s_hat`` in (0, 1] below which the flip barrier acts
+            (dimensionless; ``s = A / A0`` times the cosine of the tilt from the reference).
+        flip_quality: The barrier covers the faces of rest quality ``4 sqrt(3) A / sum |e|^2``
+            below this, in [0, 1] (dimensionless; 1 = every face, 0 = none).
         hessian_mode: "exact", "gauss_newton" or "projected" local Hessians.
         penalty_hessian: "assembled" (H^T H merged into the pattern) or "low_rank" (the factor
             G is returned instead and the assembled Hessian excludes the penalty).
@@ -65,15 +95,21 @@ class ShellParams:
     k_A: float = 0.0
     k_B: float = 1e-1
     k_P: float = 1e3
+    k_F: float = 1e3
+    flip_activation: float = 0.1
+    flip_quality: float = 1.0
     hessian_mode: HessianMode = "exact"
     penalty_hessian: PenaltyHessian = "assembled"
 
     def __post_init__(self) -> None:
         """Validate stiffnesses (finite, >= 0) and option names."""
-        for name in ("k_L", "k_A", "k_B", "k_P"):
+        for name in ("k_L", "k_A", "k_B", "k_P", "k_F"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise InputError(f"{name}: must be a finite number >= 0, got {value!r}")
+        check_activation(self.flip_activation)
+        if not (np.isfinite(self.flip_quality) and 0.0 <= self.flip_quality <= 1.0):
+            raise InputError(f"flip_quality: must be in [0, 1], got {self.flip_quality!r}")
         check_hessian_mode(self.hessian_mode)
         if self.penalty_hessian not in ("assembled", "low_rank"):
             raise InputError(f"penalty_hessian: expected 'assembled' or 'low_rank', "
@@ -90,7 +126,8 @@ class ShellEval:
         hess: Hessian csr_matrix (3 n, 3 n) on the fixed pattern, or None for order < 2.
         penalty_factor: G (3 c, 3 n) when penalty_hessian == "low_rank" and order 2, else None.
         terms: Energy of each active term: keys among "membrane_edge", "membrane_area",
-            "bending", "penalty" (stiffness included).
+            "bending", "penalty", "flip_barrier" (stiffness included; the barrier is +inf when
+            a face is collapsed or turned over).
 
     """
 
@@ -125,6 +162,11 @@ class ShellEnergy:
         self._penalty = (PenaltyOperator.from_matrix(H, n)
                          if (H is not None and params.k_P > 0) else None)
         self._target = rest.positions.copy()
+        self._rest_normals = reference_normals(rest.positions, topology.faces, rest.rest_areas,
+                                               np.tile([0.0, 0.0, 1.0], (topology.n_faces, 1)))
+        self._ref_normals = self._rest_normals
+        self._flip = flip_faces(topology, rest, params.flip_quality)
+        self._flip_weights = barrier_weights(rest.positions, topology.faces[self._flip])
         self._bend_weights = params.k_B * rest.hinge_weights
         self._build_pattern()
 
@@ -132,7 +174,7 @@ class ShellEnergy:
         """Stencil array of each active local term, in a fixed order."""
         t, p = self.topology, self.params
         active = {"membrane_edge": (p.k_L, t.edges), "membrane_area": (p.k_A, t.faces),
-                  "bending": (p.k_B, t.hinges)}
+                  "bending": (p.k_B, t.hinges), "flip_barrier": (p.k_F, t.faces[self._flip])}
         return {name: st for name, (k, st) in active.items() if k > 0 and st.shape[0] > 0}
 
     def _build_pattern(self) -> None:
@@ -169,26 +211,59 @@ class ShellEnergy:
         return penalty_gram(self._penalty) if self._penalty is not None else None
 
     def set_target(self, y: np.ndarray) -> None:
-        """Set the penalty target y (n, 3), e.g. ``B (X_q + u_q)``; validated and copied."""
+        """Set the penalty target y (n, 3), e.g. ``B (X_q + u_q)``; validated and copied.
+
+        The flip barrier's reference normals become the unit face normals of y (a face
+        degenerate on y keeps its rest normal).
+        """
         self._target = check_positions(y, self.n_vertices, "y").copy()
+        self._ref_normals = reference_normals(self._target, self.topology.faces,
+                                              self.rest.rest_areas, self._rest_normals)
+
+    @property
+    def reference_normals(self) -> np.ndarray:
+        """Unit reference normals (F, 3) of the flip barrier, for every face (a copy)."""
+        return self._ref_normals.copy()
+
+    @property
+    def flip_faces(self) -> np.ndarray:
+        """Indices of the faces the flip barrier covers (rest quality < ``flip_quality``)."""
+        return self._flip.copy()
 
     def value(self, x: np.ndarray) -> float:
         """Total energy W(x)."""
         return self.evaluate(x, order=0).value
 
-    def _term_evals(self, x: np.ndarray, order: int, mode: HessianMode) -> dict[str, TermEval]:
-        """Evaluate every active term (stiffness already included)."""
+    def _sink(self, name: str, data: np.ndarray | None) -> HessianSink | None:
+        """Fused-assembly sink of term ``name`` into ``data`` (None: the term stores blocks)."""
+        return None if data is None else HessianSink.for_map(self.pattern, self._maps[name], data)
+
+    def _term_evals(self, x: np.ndarray, order: int, mode: HessianMode,
+                    data: np.ndarray | None = None) -> dict[str, TermEval]:
+        """Evaluate every active term (stiffness already included).
+
+        With ``data`` (order 2) the edge and hinge kernels add their blocks straight into it
+        (:class:`models.shell.assembly.HessianSink`); the other terms return blocks.
+        """
         p, t, r = self.params, self.topology, self.rest
         out: dict[str, TermEval] = {}
         if "membrane_edge" in self._maps:
             out["membrane_edge"] = edge_membrane(x, t.edges, r.rest_lengths, order=order,
-                                                 hessian_mode=mode, stiffness=p.k_L)
+                                                 hessian_mode=mode, stiffness=p.k_L,
+                                                 sink=self._sink("membrane_edge", data))
         if "membrane_area" in self._maps:
             out["membrane_area"] = area_membrane(x, t.faces, r.rest_areas, order=order,
                                                  hessian_mode=mode, stiffness=p.k_A)
         if "bending" in self._maps:
             out["bending"] = hinge_bending(x, t.hinges, r.rest_angles, self._bend_weights,
-                                           order=order, hessian_mode=mode)
+                                           order=order, hessian_mode=mode,
+                                           sink=self._sink("bending", data))
+        if "flip_barrier" in self._maps:
+            k = self._flip
+            out["flip_barrier"] = flip_barrier(x, t.faces[k], r.rest_areas[k], self._flip_weights,
+                                               self._ref_normals[k],
+                                               s_hat=p.flip_activation, order=order,
+                                               hessian_mode=mode, stiffness=p.k_F)
         if self._penalty is not None:
             out["penalty"] = penalty_term(x, self._target, self._penalty, order=min(order, 1),
                                           stiffness=p.k_P)
@@ -211,21 +286,28 @@ class ShellEnergy:
         mode = self.params.hessian_mode if hessian is None else hessian
         check_hessian_mode(mode, "hessian")
         xc = check_positions(x, self.n_vertices)
-        evals = self._term_evals(xc, order, mode)
+        data = None
+        if order >= 2:
+            data = np.zeros(self.pattern.nnz) if self._hess_base is None else self._hess_base.copy()
+        evals = self._term_evals(xc, order, mode, data)
         grad = None
         if order >= 1:
             grad = np.zeros(3 * self.n_vertices)
             for ev in evals.values():
                 grad += ev.grad  # type: ignore[arg-type]
-        hess = self._assemble(evals) if order >= 2 else None
+        hess = self._assemble(evals, data) if data is not None else None
         return ShellEval(value=float(sum(ev.value for ev in evals.values())), grad=grad,
                          hess=hess, penalty_factor=self._factor if order >= 2 else None,
                          terms={name: ev.value for name, ev in evals.items()})
 
-    def _assemble(self, evals: dict[str, TermEval]) -> sp.csr_matrix:
-        """Scatter the local blocks of the active terms (+ constant penalty part)."""
-        contributions = [(self._maps[name], evals[name].blocks) for name in self._maps]
-        return assemble(self.pattern, contributions, base=self._hess_base)  # type: ignore[arg-type]
+    def _assemble(self, evals: dict[str, TermEval], data: np.ndarray) -> sp.csr_matrix:
+        """Add the stored local blocks to ``data`` and wrap it as the Hessian.
+
+        ``data`` already holds the constant penalty part and the blocks of the fused terms.
+        """
+        contributions = [(self._maps[name], evals[name].blocks) for name in self._maps
+                         if evals[name].blocks is not None and _any_active(name, evals[name])]
+        return assemble(self.pattern, contributions, out=data)  # type: ignore[arg-type]
 
     def bending_density(self, x: np.ndarray) -> np.ndarray:
         """Per-vertex bending energy density k_B W_B split to edge vertices / vertex area (n,).
@@ -238,3 +320,15 @@ class ShellEnergy:
         areas = np.where(self.rest.vertex_areas > 0, self.rest.vertex_areas, 1.0)
         return bending_energy_density(xc, self.topology.hinges, self.rest.rest_angles,
                                       self._bend_weights, areas)
+
+
+def _any_active(name: str, ev: TermEval) -> bool:
+    """Return False only for a flip barrier with no face below its activation (zero blocks)."""
+    return name != "flip_barrier" or ev.element_values is None or bool(np.any(ev.element_values))
+
+
+def flip_faces(topology: ShellTopology, rest: RestState, flip_quality: float) -> np.ndarray:
+    """Return the faces of rest quality below ``flip_quality`` (every face when it is 1)."""
+    if flip_quality >= 1.0:
+        return np.arange(topology.n_faces)
+    return np.flatnonzero(face_quality(rest.positions, topology.faces) < flip_quality)

@@ -43,10 +43,12 @@ import numpy as np
 
 from models.shell.assembly import (
     HessianMode,
+    HessianSink,
     TermEval,
     check_hessian_mode,
     check_order,
     project_psd_blocks,
+    scatter_block,
 )
 
 _FLOOR = 1e-12
@@ -57,8 +59,13 @@ collapsed edge or face yields large but finite derivatives (never inf/NaN)."""
 @numba.njit(cache=True, fastmath=False)
 def _edge_kernel(x: np.ndarray, edges: np.ndarray, rest_len: np.ndarray, stiffness: float,
                  order: int, clamp: bool, vals: np.ndarray, grad: np.ndarray,
-                 blocks: np.ndarray) -> None:  # pragma: no cover - numba
-    """Fused value / gradient / 6x6 Hessian of ``stiffness (l - l0)^2 / l0`` per edge."""
+                 blocks: np.ndarray, fused: bool, data: np.ndarray, base: np.ndarray,
+                 row_len: np.ndarray) -> None:  # pragma: no cover - numba
+    """Fused value / gradient / 6x6 Hessian of ``stiffness (l - l0)^2 / l0`` per edge.
+
+    With ``fused`` each block goes straight into ``data`` (:class:`HessianSink`).
+    """
+    scratch = np.empty((6, 6))
     for e in range(edges.shape[0]):
         i, j = edges[e, 0], edges[e, 1]
         l0 = rest_len[e]
@@ -79,30 +86,37 @@ def _edge_kernel(x: np.ndarray, edges: np.ndarray, rest_len: np.ndarray, stiffne
         if clamp and tr < 0.0:
             tr = 0.0
         a = 2.0 * stiffness / l0
+        kb = scratch if fused else blocks[e]
         for p in range(3):
             for q in range(3):
                 kpq = a * ((1.0 - tr) * u[p] * u[q] + (tr if p == q else 0.0))
-                blocks[e, p, q] = kpq
-                blocks[e, 3 + p, 3 + q] = kpq
-                blocks[e, p, 3 + q] = -kpq
-                blocks[e, 3 + p, q] = -kpq
+                kb[p, q] = kpq
+                kb[3 + p, 3 + q] = kpq
+                kb[p, 3 + q] = -kpq
+                kb[3 + p, q] = -kpq
+        if fused:
+            scatter_block(data, edges[e], base[e], row_len, scratch, 1.0)
 
 
-def _outputs(n_vertices: int, m: int, s: int, order: int) -> tuple[np.ndarray, ...]:
+def _outputs(n_vertices: int, m: int, s: int, order: int,
+             keep_blocks: bool = True) -> tuple[np.ndarray, ...]:
     """Allocate per-stencil values, flat gradient and local blocks (empty when not needed)."""
     grad = np.zeros(3 * n_vertices if order >= 1 else 0)
-    blocks = np.empty((m, 3 * s, 3 * s) if order >= 2 else (0, 3 * s, 3 * s))  # all written
+    rows = m if order >= 2 and keep_blocks else 0
+    blocks = np.empty((rows, 3 * s, 3 * s))  # all written
     return np.empty(m), grad, blocks
 
 
-def _term_eval(vals: np.ndarray, grad: np.ndarray, blocks: np.ndarray, order: int) -> TermEval:
-    """Package kernel outputs as a TermEval (None for orders not requested)."""
+def _term_eval(vals: np.ndarray, grad: np.ndarray, blocks: np.ndarray | None,
+               order: int) -> TermEval:
+    """Package kernel outputs as a TermEval (None for orders not requested or fused)."""
     return TermEval(value=float(vals.sum()), grad=grad if order >= 1 else None,
                     blocks=blocks if order >= 2 else None, element_values=vals)
 
 
 def edge_membrane(x: np.ndarray, edges: np.ndarray, rest_len: np.ndarray, *, order: int = 2,
-                  hessian_mode: HessianMode = "exact", stiffness: float = 1.0) -> TermEval:
+                  hessian_mode: HessianMode = "exact", stiffness: float = 1.0,
+                  sink: HessianSink | None = None) -> TermEval:
     """Edge-spring membrane energy ``stiffness * sum_e (l_e - l0_e)^2 / l0_e``.
 
     Args:
@@ -113,6 +127,8 @@ def edge_membrane(x: np.ndarray, edges: np.ndarray, rest_len: np.ndarray, *, ord
         hessian_mode: "exact", "gauss_newton" or "projected" (the last two coincide here:
             the transverse part of compressed edges is dropped).
         stiffness: Factor k_L multiplying the energy and its derivatives.
+        sink: If given (order 2), each 6x6 block is added straight into ``sink.data`` (fused
+            assembly, :class:`models.shell.assembly.HessianSink`) and ``blocks`` is None.
 
     Returns:
         TermEval with per-edge energies in ``element_values``.
@@ -120,10 +136,11 @@ def edge_membrane(x: np.ndarray, edges: np.ndarray, rest_len: np.ndarray, *, ord
     """
     check_order(order)
     check_hessian_mode(hessian_mode)
-    vals, grad, blocks = _outputs(x.shape[0], edges.shape[0], 2, order)
+    fused, data, base, row_len = HessianSink.unpacked(sink if order >= 2 else None, 2)
+    vals, grad, blocks = _outputs(x.shape[0], edges.shape[0], 2, order, keep_blocks=not fused)
     _edge_kernel(x, edges, rest_len, float(stiffness), order, hessian_mode != "exact",
-                 vals, grad, blocks)
-    return _term_eval(vals, grad, blocks, order)
+                 vals, grad, blocks, fused, data, base, row_len)
+    return _term_eval(vals, grad, None if fused else blocks, order)
 
 
 @numba.njit(cache=True, inline="always")

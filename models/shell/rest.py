@@ -23,11 +23,24 @@ the hinge weights ``3 |e0|^2 / (A1 + A2)`` stay <= 10.7 since the neighbour is r
 round-off floor of the gradient ``eps ||H|| ||x||`` (||x|| = 2.9) is 6.9e-6 at q = 2.3e-3 and,
 scaling like ``1 / q^2``, reaches the Newton tolerance ``rtol ||g0||`` = 3.2e-5 (rtol = 1e-8) at
 q ~ 1e-3; at q = 2.3e-6 it is ~7, far above the tolerance 3.5e-3: such a solve cannot converge
-in double precision. Accepted slivers (1e-3 <= q <~ 0.25) are not solved either in that scene:
-the first shifted Newton step reverses the sliver (its normal turns by 180 degrees: the edge
-springs barely see it), after which the iterate sits at the sliver's zero-area kink (current
-A / A0 ~ 1e-10 .. 1e-7, ``||H||_1`` up to 1.2e25) and the shell Newton stops by its stagnation
-test naming the face (``solvers/shell_newton.py``); q = 0.50 converged in 18 iterations.
+in double precision.
+
+Accepted slivers (1e-3 <= q) converge since the flip barrier (:mod:`models.shell.barrier`,
+on by default). The cause of the earlier failure, measured on the same scene (q = 0.23 and
+2.3e-3): with k_A = 0 nothing resists a face collapsing - a sliver's edge lengths change only
+to second order in its height - and at zero area its normal, hence its hinges' angles, is
+undefined (a cone singularity of W, ``||g|| ~ 1 / A``). The first shifted Newton step flipped
+the q = 0.23 sliver (signed area -0.39 A0, W 143.5 -> 116.5), later steps pulled it back and
+forth across zero area and the iterate ended on the singularity (A / A0 ~ 2e-10, W frozen at
+54.476, ||g|| ~ 1e5, stagnation after 58 iterations). With the barrier the q = 2.3e-3 sliver
+settles at s = 0.095 (just below the activation 0.1: without a barrier the minimiser would
+collapse it; with ``k_F = 0`` even the projected Newton stalls at s = 1.4e-4, ||g|| = 5.9).
+Without the barrier the same scene also stagnated at q = 0.33, 0.43 and 0.465 (q = 0.498
+converged). The exact-Hessian Newton remains unreliable at q = 2.3e-3 even with the barrier
+(126 iterations in one measurement, not converged in 200 in another, against 26 with
+``far_hessian = "projected"``): the hinges of a sliver have an indefinite exact Hessian of
+size ~ 1 / q^2 and the global diagonal shift ``A + tau I`` that makes it definite
+(tau ~ 1e8) throttles every other unknown.
 """
 
 from __future__ import annotations

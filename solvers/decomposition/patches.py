@@ -22,6 +22,7 @@ shared boundary), which keeps groups edge-connected, compact and balanced.
 
 from __future__ import annotations
 
+import heapq
 from dataclasses import dataclass
 
 import numpy as np
@@ -87,38 +88,72 @@ def relabel(partition: np.ndarray, n_vertices: int) -> np.ndarray:
     return np.unique(part, return_inverse=True)[1].astype(np.int64)
 
 
-def _group_adjacency(edges: np.ndarray, labels: np.ndarray) -> dict[tuple[int, int], int]:
-    """Count the mesh edges between each pair (a < b) of groups."""
+def _group_adjacency(edges: np.ndarray, labels: np.ndarray,
+                     count: int) -> list[dict[int, int]]:
+    """Mesh edges shared by each pair of groups: ``adjacency[a][b]`` (symmetric)."""
     a, b = labels[edges[:, 0]], labels[edges[:, 1]]
     cross = a != b
     lo, hi = np.minimum(a[cross], b[cross]), np.maximum(a[cross], b[cross])
     pairs, counts = np.unique(np.column_stack([lo, hi]), axis=0, return_counts=True)
-    return {(int(p[0]), int(p[1])): int(c) for p, c in zip(pairs, counts, strict=True)}
+    adjacency: list[dict[int, int]] = [{} for _ in range(count)]
+    for (g, h), w in zip(pairs.tolist(), counts.tolist(), strict=True):
+        adjacency[g][h] = adjacency[h][g] = w
+    return adjacency
 
 
-def _merge_target(group: int, sizes: dict[int, int],
-                  adjacency: dict[tuple[int, int], int]) -> int:
-    """Pick the merge partner: the adjacent group of smallest size.
+class _Merger:
+    """Smallest-first merging with a heap (stale entries skipped) and per-group adjacency.
 
-    Ties go to the longest shared boundary; an isolated group takes the smallest other one.
+    Each merge costs O(deg log c) instead of rebuilding the whole adjacency (which took
+    14 s for the 2209 clusters of a 20k-vertex plate and grows like c^2).
     """
-    shared = {(b if a == group else a): w for (a, b), w in adjacency.items() if group in (a, b)}
-    if shared:
-        return min(shared, key=lambda g: (sizes[g], -shared[g], g))
-    return min((g for g in sizes if g != group), key=lambda g: (sizes[g], g))
 
+    def __init__(self, sizes: np.ndarray, adjacency: list[dict[int, int]]) -> None:
+        self.sizes = sizes.astype(np.int64).tolist()
+        self.adjacency = adjacency
+        self.alive = set(range(len(self.sizes)))
+        self.into = list(range(len(self.sizes)))
+        self.heap = [(s, g) for g, s in enumerate(self.sizes)]
+        heapq.heapify(self.heap)
 
-def _merge_pair(keep: int, gone: int, sizes: dict[int, int],
-                adjacency: dict[tuple[int, int], int]) -> dict[tuple[int, int], int]:
-    """Merge group ``gone`` into ``keep``: sizes updated in place, new adjacency returned."""
-    sizes[keep] += sizes.pop(gone)
-    merged: dict[tuple[int, int], int] = {}
-    for (a, b), w in adjacency.items():
-        a, b = (keep if a == gone else a), (keep if b == gone else b)
-        if a != b:
-            key = (min(a, b), max(a, b))
-            merged[key] = merged.get(key, 0) + w
-    return merged
+    def _pop_smallest(self) -> int:
+        """Pop the alive group of smallest (size, index)."""
+        while True:
+            size, g = heapq.heappop(self.heap)
+            if g in self.alive and size == self.sizes[g]:
+                return g
+
+    def _target(self, group: int) -> int:
+        """Adjacent group of smallest size (ties: longest shared boundary, then index).
+
+        An isolated group takes the smallest other one.
+        """
+        shared, sizes = self.adjacency[group], self.sizes
+        if shared:
+            return min(shared, key=lambda g: (sizes[g], -shared[g], g))
+        return min((g for g in self.alive if g != group), key=lambda g: (sizes[g], g))
+
+    def merge_one(self) -> None:
+        """Merge the smallest group into its target."""
+        gone = self._pop_smallest()
+        keep = self._target(gone)
+        for g, w in self.adjacency[gone].items():
+            del self.adjacency[g][gone]
+            if g != keep:
+                self.adjacency[g][keep] = self.adjacency[g].get(keep, 0) + w
+                self.adjacency[keep][g] = self.adjacency[keep].get(g, 0) + w
+        self.adjacency[gone] = {}
+        self.sizes[keep] += self.sizes[gone]
+        self.alive.discard(gone)
+        self.into[gone] = keep
+        heapq.heappush(self.heap, (self.sizes[keep], keep))
+
+    def final(self) -> np.ndarray:
+        """Surviving group of every original group (chains followed)."""
+        out = np.array(self.into)
+        while not np.array_equal(out, out[out]):
+            out = out[out]
+        return out
 
 
 def merge_partition(topology: ShellTopology, partition: np.ndarray, n_parts: int) -> np.ndarray:
@@ -141,15 +176,11 @@ def merge_partition(topology: ShellTopology, partition: np.ndarray, n_parts: int
     if not 1 <= n_parts <= count:
         raise InputError(f"n_parts: must be in [1, {count}] (the number of vertex sets), "
                          f"got {n_parts}")
-    sizes = {g: int(s) for g, s in enumerate(np.bincount(labels, minlength=count))}
-    adjacency = _group_adjacency(topology.edges, labels)
-    final = np.arange(count)
-    while len(sizes) > n_parts:
-        gone = min(sizes, key=lambda g: (sizes[g], g))
-        keep = _merge_target(gone, sizes, adjacency)
-        adjacency = _merge_pair(keep, gone, sizes, adjacency)
-        final[final == gone] = keep
-    return relabel(final[labels], topology.n_vertices)
+    merger = _Merger(np.bincount(labels, minlength=count),
+                     _group_adjacency(topology.edges, labels, count))
+    for _ in range(count - n_parts):
+        merger.merge_one()
+    return relabel(merger.final()[labels], topology.n_vertices)
 
 
 def _patch(topology: ShellTopology, index: int, interior_mask: np.ndarray) -> Patch:

@@ -1,0 +1,611 @@
+"""Rigid balls coupled two-way to the elastic body through the penalty contact of contact.py.
+
+A ball of mass ``m``, radius ``r``, centre ``c`` and velocity ``w`` obeys ``m dw/dt = m g + F``
+with ``F = -R`` and ``R = int_dOmega -k <g>_- grad g dA`` the force the ball's sphere obstacle
+exerts on the body (:class:`models.contact.PenaltyContact`, ``Body.reaction_force``): the
+contact force on the ball is minus the assembled reaction on the body (Newton's third law
+holds exactly because both come from the same integral).
+
+Time integration: the ball uses the body's scheme (Newmark family, ``a = dw/dt``), so ball
+and body share one time-discrete momentum balance:
+
+    implicit Euler (beta = gamma = 1):  c_pred = c_n + h w_n
+    Newmark (beta = 1/4, gamma = 1/2):   c_pred = c_n + h w_n + h^2 (1/2 - beta) a_n
+    both:  c_{n+1} = c_pred + beta h^2 a_{n+1},  w_{n+1} = w_n + h ((1-gamma) a_n + gamma a_{n+1}),
+           a_{n+1} = g - R_{n+1} / m.
+
+(body.py uses the same predictors, so a free fall of ball and body agree to round-off: implicit
+Euler gives ``c_n = c_0 + w_0 t_n + g h^2 n (n + 1)/2``, Newmark the exact parabola.)
+
+Two-way coupling within a step. Ball and body together minimise one incremental potential
+``Pi_body(u; c) + m/(2 beta h^2) |c - c_pred|^2 - m g.c``; the contact energy couples ``u`` and
+``c``. A plain explicit staggering (move the ball with the previous step's force, then solve
+the body) is only conditionally stable: its error is amplified by ``beta h^2 K / m`` per step,
+``K ~ k * contact area`` the penalty stiffness, which is >> 1 for the stiff penalties that
+keep penetration small (e.g. k = 5e7 Pa/m on 0.03 m^2, m = 5 kg, h = 10 ms: 3e3), so the ball
+sinks into the body or is shot out. Here each step instead solves the interface equation
+
+    r(c) = c - c_pred - beta h^2 (g - R(c, u(c)) / m) = 0,
+
+where ``u(c)`` is the body's converged step with the sphere at ``c`` (an implicit update of
+the ball with the contact stiffness, partitioned: the body Newton is unchanged). ``r`` is
+solved by Broyden's (good) quasi-Newton method (Broyden 1965; the interface quasi-Newton of
+partitioned fluid-structure solvers, Degroote et al. 2009), starting from the Jacobian
+``J_0 = I + beta h^2 K_rigid / m`` with ``K_rigid = dR/dc`` at fixed body
+(:meth:`PenaltyContact.center_stiffness_forms`). ``K_rigid`` over-estimates the stiffness of
+the compliant body, so the first steps are short but never overshoot; the secant updates fix
+the stiffness along the iteration. The loop stops when ``max |r| <= rtol * radius``; before
+contact ``R = 0`` and one body solve is enough. Iterations are recorded per step.
+
+Momentum bookkeeping (:class:`Ledger`): the ball's velocity is updated with the *same*
+``R_{n+1}`` that the body's last solve felt (the last iterate), so the momentum exchanged is
+exact up to the body's Newton tolerance even when the interface iteration stops at its
+tolerance (the position mismatch ``|r|`` is the only inexactness). Per step the impulse of a
+force is ``h ((1 - gamma) F_n + gamma F_{n+1})``, the scheme's own quadrature; the body's
+discrete momentum ``P = int rho v dX`` changes by ``M g h`` + the impulses of all its contacts
+(test function = a constant vector, the partition of unity). So
+
+    impulse on the balls  = m (w - w_0) - m g t - guide  = - sum_steps h R
+    impulse on the body   = P - P_0 - M g t - ground     = + sum_steps h R
+
+and their sum is zero to solver tolerance. "Ground" is every support of the body: its other
+contacts (``Body.reaction_force``) and its pins (``Body.pin_reaction``, the residual at the
+pinned dofs).
+
+A ball may be guided (``RigidBallOptions.guide``): its motion in the guided components is
+held (a = w = 0 there; the guide's reaction ``-(m g + F)`` in those components is booked as
+``guide``).
+
+Not modelled: friction, rotation of the balls (frictionless contact exerts no torque on a
+sphere), ball-ball contact.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from models.backend import MPI, dolfinx, global_scalar
+from models.contact import ContactOptions, _vector3
+from models.errors import InputError, SolverError
+
+SCHEMES: dict[str, tuple[float, float, float]] = {
+    "implicit_euler": (1.0, 1.0, 0.0),
+    "newmark": (0.25, 0.5, 0.25),
+}
+"""dynamics -> (beta, gamma, weight of a_n in the predictor ``h^2 (1/2 - beta)``)."""
+
+
+@dataclass(frozen=True)
+class RigidBallOptions:
+    """A rigid sphere; its gravity is the body's (``body.gravity``), its scheme the body's.
+
+    Attributes:
+        radius: Radius [m] (> 0).
+        mass: Mass [kg]; give exactly one of ``mass`` and ``density``.
+        density: Density [kg/m^3] (mass = density * 4/3 pi radius^3).
+        center: Centre at t = 0 [m].
+        velocity: Velocity at t = 0 [m/s].
+        stiffness: Penalty stiffness of its contact with the body [Pa/m]; ``None`` means
+            ``stiffness_factor * E / h_min`` (:class:`models.contact.ContactOptions`).
+        stiffness_factor: Scale of the default penalty stiffness [-].
+        quadrature_degree: Facet quadrature degree of the contact integral.
+        guide: Components (0 = x, 1 = y, 2 = z) of the ball's motion held by a frictionless
+            guide, e.g. ``[0, 1]``: the ball moves only vertically. Frictionless contact gives
+            a sphere no torque and a flat cushion no horizontal restoring force, so without a
+            guide the slight asymmetry of a coarse mesh's dent sets the ball sliding sideways
+            for ever. The guide's reaction is booked in the :class:`Ledger`.
+
+    """
+
+    radius: float = 0.1
+    mass: float | None = None
+    density: float | None = None
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    stiffness: float | None = None
+    stiffness_factor: float = 100.0
+    quadrature_degree: int = 4
+    guide: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        guide = tuple(int(k) for k in self.guide)
+        if any(k not in (0, 1, 2) for k in guide) or len(set(guide)) != len(guide):
+            raise InputError(f"ball.guide must be distinct values in 0, 1, 2, got {self.guide!r}")
+        object.__setattr__(self, "guide", guide)
+        if not (math.isfinite(self.radius) and self.radius > 0.0):
+            raise InputError(f"ball.radius must be > 0, got {self.radius}")
+        if (self.mass is None) == (self.density is None):
+            raise InputError("ball: give exactly one of 'mass' and 'density'")
+        for name in ("mass", "density"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0.0):
+                raise InputError(f"ball.{name} must be > 0, got {value}")
+        object.__setattr__(self, "center", _vector3("ball.center", self.center))
+        object.__setattr__(self, "velocity", _vector3("ball.velocity", self.velocity))
+        if any(self.velocity[k] != 0.0 for k in guide):
+            raise InputError(f"ball.velocity must be 0 in the guided components {guide}, got "
+                             f"{self.velocity}")
+        self.contact()  # validates stiffness, stiffness_factor, quadrature_degree
+
+    @property
+    def free(self) -> np.ndarray:
+        """1.0 for the components the ball moves in, 0.0 for the guided ones, (3,)."""
+        mask = np.ones(3)
+        mask[list(self.guide)] = 0.0
+        return mask
+
+    @property
+    def total_mass(self) -> float:
+        """Mass [kg]: ``mass``, or ``density * 4/3 pi radius^3``."""
+        if self.mass is not None:
+            return self.mass
+        return float(self.density) * 4.0 / 3.0 * math.pi * self.radius**3  # type: ignore[arg-type]
+
+    def contact(self) -> ContactOptions:
+        """Return the sphere obstacle that holds the ball off the body."""
+        try:
+            return ContactOptions(obstacle="sphere", center=self.center, radius=self.radius,
+                                  stiffness=self.stiffness,
+                                  stiffness_factor=self.stiffness_factor,
+                                  quadrature_degree=self.quadrature_degree)
+        except InputError as exc:
+            raise InputError(str(exc).replace("contact.", "ball.")) from None
+
+
+@dataclass(frozen=True)
+class RigidCouplingOptions:
+    """The per-step interface iteration ball position <-> body solve.
+
+    Attributes:
+        rtol: Stop when ``max |r(c)| <= rtol * radius`` (r: mismatch of the ball position
+            with the integrator's update for the force of the body solve) [-].
+        max_iterations: Body solves per step at most; more raise ``SolverError``.
+
+    """
+
+    rtol: float = 1.0e-8
+    max_iterations: int = 30
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.rtol) and self.rtol > 0.0):
+            raise InputError(f"rigid.coupling.rtol must be > 0, got {self.rtol}")
+        if self.max_iterations < 1:
+            raise InputError(f"rigid.coupling.max_iterations must be >= 1, got "
+                             f"{self.max_iterations}")
+
+
+@dataclass(frozen=True)
+class RigidOptions:
+    """The scene's rigid bodies (``[rigid]`` table with ``[[rigid.balls]]`` entries).
+
+    Attributes:
+        balls: The rigid balls; each adds a sphere contact to the body.
+        coupling: The per-step coupling iteration.
+
+    """
+
+    balls: tuple[RigidBallOptions, ...] = ()
+    coupling: RigidCouplingOptions = field(default_factory=RigidCouplingOptions)
+
+    def __post_init__(self) -> None:
+        balls = tuple(b if isinstance(b, RigidBallOptions) else RigidBallOptions(**dict(b))
+                      for b in self.balls)
+        object.__setattr__(self, "balls", balls)
+
+
+# --------------------------------------------------------------------------------------------
+# The integrator (pure numpy)
+
+
+def scheme(dynamics: str) -> tuple[float, float, float]:
+    """``(beta, gamma, predictor weight of a_n)`` of the body's dynamics (module docstring)."""
+    if dynamics not in SCHEMES:
+        raise InputError(f"rigid balls need body.dynamics in {tuple(SCHEMES)}, got "
+                         f"{dynamics!r}")
+    return SCHEMES[dynamics]
+
+
+@dataclass
+class BallState:
+    """Centres, velocities, accelerations and contact forces of ``N`` balls, arrays (N, 3).
+
+    Attributes:
+        center: Centres [m].
+        velocity: Velocities [m/s].
+        acceleration: Accelerations ``g + F/m`` [m/s^2].
+        force: Contact force on each ball ``F = -R`` at the current time [N].
+
+    """
+
+    center: np.ndarray
+    velocity: np.ndarray
+    acceleration: np.ndarray
+    force: np.ndarray
+
+    def copy(self) -> BallState:
+        """Return a deep copy."""
+        return BallState(*(np.array(a, copy=True) for a in self.arrays()))
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        """``(center, velocity, acceleration, force)``."""
+        return self.center, self.velocity, self.acceleration, self.force
+
+
+def predict(state: BallState, h: float, dynamics: str) -> np.ndarray:
+    """Predicted centres ``c_pred = c_n + h w_n + h^2 (1/2 - beta) a_n`` (Newmark term only)."""
+    _, _, weight = scheme(dynamics)
+    return state.center + h * state.velocity + h * h * weight * state.acceleration
+
+
+def advance(state: BallState, c_pred: np.ndarray, accel: np.ndarray, force: np.ndarray,
+            h: float, dynamics: str) -> BallState:
+    """Return the state at ``t + h`` given the new acceleration ``a_{n+1}`` and contact force."""
+    beta, gamma, _ = scheme(dynamics)
+    velocity = state.velocity + h * ((1.0 - gamma) * state.acceleration + gamma * accel)
+    return BallState(c_pred + beta * h * h * accel, velocity, accel.copy(), force.copy())
+
+
+def impulse(old: np.ndarray, new: np.ndarray, h: float, dynamics: str) -> np.ndarray:
+    """Impulse ``h ((1 - gamma) F_n + gamma F_{n+1})`` of a force over a step [N s]."""
+    _, gamma, _ = scheme(dynamics)
+    return h * ((1.0 - gamma) * np.asarray(old) + gamma * np.asarray(new))
+
+
+def broyden_solve(residual: Any, x0: np.ndarray, J0: Any, tol: float,
+                  max_iterations: int) -> tuple[np.ndarray, int, float]:
+    """Solve ``residual(x) = 0`` (x flat) by Broyden's good method from Jacobian ``J0``.
+
+    ``J_{k+1} = J_k + (dr - J_k dx) dx^T / (dx . dx)`` (Broyden 1965). ``J0`` is a matrix or a
+    callable ``J0(x0, r0)`` evaluated after the first residual (e.g. a stiffness assembled at
+    the first body solve).
+
+    Returns:
+        ``(x, iterations, max |r|)`` of the last residual evaluated; ``x`` is the point where
+        the last residual was evaluated (converged or not: the caller checks ``max |r|``).
+
+    """
+    x = np.array(x0, dtype=float)
+    r = residual(x)
+    J = J0(x, r) if callable(J0) else np.array(J0, dtype=float)
+    k = 1
+    while np.max(np.abs(r)) > tol and k < max_iterations:
+        dx = -np.linalg.solve(J, r)
+        x_new = x + dx
+        r_new = residual(x_new)
+        J = J + np.outer(r_new - r - J @ dx, dx) / float(dx @ dx)
+        x, r, k = x_new, r_new, k + 1
+    return x, k, float(np.max(np.abs(r)))
+
+
+# --------------------------------------------------------------------------------------------
+# Two-way coupling with the body
+
+
+def initial_state(balls: tuple[RigidBallOptions, ...], gravity: np.ndarray) -> BallState:
+    """Balls at their initial centres and velocities, free-fall acceleration, no force."""
+    n = len(balls)
+    free = np.array([b.free for b in balls]).reshape(n, 3)
+    return BallState(np.array([b.center for b in balls], dtype=float).reshape(n, 3),
+                     np.array([b.velocity for b in balls], dtype=float).reshape(n, 3),
+                     free * gravity, np.zeros((n, 3)))
+
+
+@dataclass
+class Ledger:
+    """Cumulative momentum bookkeeping since t = 0 (all (3,) vectors, SI units).
+
+    Attributes:
+        contact_impulse: Impulse of the balls' contacts on the body ``sum h R`` [N s]
+            (the balls receive minus it).
+        ground_impulse: Impulse of the supports (other contacts, pins) on the body [N s].
+        ground_force: Force of the supports on the body at the current time [N].
+        guide_impulse: Impulse of the balls' guides on the balls [N s] (``guide``).
+        body_momentum0: Body momentum ``int rho v dX`` at t = 0 [kg m/s].
+        ball_momentum0: Summed ball momentum at t = 0 [kg m/s].
+        time0: Time of the state the ledger starts from [s].
+
+    """
+
+    contact_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    ground_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    ground_force: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    body_momentum0: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    ball_momentum0: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    guide_impulse: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    time0: float = 0.0
+
+
+@dataclass(frozen=True)
+class RigidStepInfo:
+    """What one coupled step did.
+
+    Attributes:
+        iterations: Body solves of the interface iteration.
+        mismatch: Final ``max |r|`` [m].
+        penetration: Penetration of each ball into the body, fraction of its radius.
+        report: The body's step report of the last solve, with ``newton_iterations`` and
+            ``halvings`` summed over all the step's body solves.
+
+    """
+
+    iterations: int
+    mismatch: float
+    penetration: tuple[float, ...]
+    report: Any
+
+
+class BallCoupling:
+    """Rigid balls stepped together with a body whose contacts ``first..first+N-1`` are theirs.
+
+    Args:
+        body: The body (``models.body.Body``); its ``options.contacts[first + i]`` is the
+            sphere of ball ``i`` (:meth:`RigidBallOptions.contact`), the other contacts and
+            the pins count as ground in the :class:`Ledger`.
+        options: The balls and the coupling iteration.
+        first: Index of the first ball's contact in the body's contacts.
+
+    """
+
+    def __init__(self, body: Any, options: RigidOptions, first: int) -> None:
+        if not options.balls:
+            raise InputError("rigid: no balls")
+        self.body, self.options = body, options
+        self.dynamics = body.options.dynamics
+        scheme(self.dynamics)
+        self.indices = list(range(first, first + len(options.balls)))
+        self.others = [i for i in range(len(body.contacts)) if i not in self.indices]
+        self.mass = np.array([b.total_mass for b in options.balls])
+        self.radius = np.array([b.radius for b in options.balls])
+        self.free = np.array([b.free for b in options.balls])
+        self.gravity = np.asarray(body.options.gravity, dtype=float)
+        self.state = initial_state(options.balls, self.gravity)
+        self._stiffness = [[[dolfinx.fem.form(f) for f in row]
+                            for row in body.contacts[i].center_stiffness_forms(body.u)]
+                           for i in self.indices]
+        rho, dx = body.material.density, body.dx
+        self._momentum = [dolfinx.fem.form(rho * body.v[k] * dx) for k in range(3)]
+        self.body_mass = global_scalar(dolfinx.fem.form(rho * dx))
+        self._surface = BoundaryFacets(body)
+        self.ledger = Ledger()
+        self.start()
+
+    # --- state --------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Begin the ledger and the forces at the body's current state (a new run)."""
+        self.set_centers(self.state.center)
+        self.body.initial_acceleration()  # Newmark: a_0 enters the pins' initial reaction
+        self.state.force = -self.reactions()
+        self.state.acceleration = self.acceleration(self.state.force)
+        self.ledger = Ledger(ground_force=self.ground_force(),
+                             body_momentum0=self.body_momentum(),
+                             ball_momentum0=self.ball_momentum(), time0=self.body.t)
+
+    def set_centers(self, centers: np.ndarray) -> None:
+        """Move every ball's sphere obstacle (takes effect at the next body solve)."""
+        for i, c in zip(self.indices, np.reshape(centers, (-1, 3)), strict=True):
+            self.body.set_sphere_center(c, i)
+
+    def acceleration(self, force: np.ndarray) -> np.ndarray:
+        """Return ``a = g + F/m`` in the free components, 0 in the guided ones, (N, 3)."""
+        return np.asarray(self.free * (self.gravity + force / self.mass[:, None]))
+
+    def guide_force(self, force: np.ndarray) -> np.ndarray:
+        """Return the guides' summed force on the balls [N]: ``-(m g + F)`` where guided."""
+        total = (1.0 - self.free) * (self.mass[:, None] * self.gravity + force)
+        return np.asarray(-total.sum(axis=0))
+
+    def reactions(self) -> np.ndarray:
+        """Force of each ball on the body ``R_i`` at the current state [N], (N, 3)."""
+        return np.array([self.body.reaction_force(i) for i in self.indices])
+
+    def ground_force(self) -> np.ndarray:
+        """Return the force of the supports on the body [N]: other contacts and pins."""
+        contacts = sum((self.body.reaction_force(i) for i in self.others), np.zeros(3))
+        return np.asarray(contacts + self.body.pin_reaction())
+
+    def body_momentum(self) -> np.ndarray:
+        """``int rho v dX`` [kg m/s]."""
+        return np.array([global_scalar(f) for f in self._momentum])
+
+    def ball_momentum(self) -> np.ndarray:
+        """``sum_i m_i w_i`` [kg m/s]."""
+        return np.asarray(self.mass @ self.state.velocity, dtype=float)
+
+    def stiffness(self) -> np.ndarray:
+        """Block-diagonal ``dR/dc`` at fixed body [N/m], (3N, 3N)."""
+        n = len(self.indices)
+        K = np.zeros((3 * n, 3 * n))
+        for b, forms in enumerate(self._stiffness):
+            K[3 * b:3 * b + 3, 3 * b:3 * b + 3] = [[global_scalar(f) for f in row]
+                                                   for row in forms]
+        return K
+
+    def penetration(self) -> tuple[float, ...]:
+        """``max(0, r - dist(c, surface)) / r`` of each ball [-] (collective)."""
+        return tuple(self._surface.penetration(c, r)
+                     for c, r in zip(self.state.center, self.radius, strict=True))
+
+    # --- the coupled step -----------------------------------------------------------------------
+
+    def step(self) -> RigidStepInfo:
+        """Advance balls and body by ``body.options.dt`` (interface iteration, module doc).
+
+        Raises:
+            SolverError: the body step failed, or the interface iteration did not reach its
+                tolerance in ``max_iterations`` body solves; body state restored.
+
+        """
+        h, body, old = self.body.options.dt, self.body, self.state
+        self.set_centers(old.center)
+        body.initial_acceleration()  # Newmark a_0 with the balls where they are
+        saved = body.snapshot()
+        beta, _, _ = scheme(self.dynamics)
+        c_pred = predict(old, h, self.dynamics)
+        scale = beta * h * h / np.repeat(self.mass, 3)
+        last: dict[str, Any] = {}
+
+        def residual(c: np.ndarray) -> np.ndarray:
+            self.set_centers(c)
+            body.restore(saved)
+            report = body.step()
+            if "report" in last:
+                report = dataclasses.replace(report, **{
+                    k: getattr(report, k) + getattr(last["report"], k)
+                    for k in ("newton_iterations", "halvings")})
+            last["report"] = report
+            last["R"] = self.reactions()
+            a = self.acceleration(-last["R"])
+            return np.asarray(c - (c_pred + beta * h * h * a).reshape(-1))
+
+        def jacobian(c: np.ndarray, r: np.ndarray) -> np.ndarray:
+            free = self.free.reshape(-1)
+            return np.eye(c.size) + (scale * free)[:, None] * self.stiffness() * free
+
+        guess = (c_pred + beta * h * h * old.acceleration).reshape(-1)
+        tol = self.options.coupling.rtol * float(self.radius.min())
+        try:
+            _, k, mismatch = broyden_solve(residual, guess, jacobian, tol,
+                                           self.options.coupling.max_iterations)
+        except np.linalg.LinAlgError:
+            k, mismatch = 0, math.inf  # a singular secant Jacobian: report as not converged
+        if mismatch > tol:
+            body.restore(saved)
+            self.set_centers(old.center)
+            raise SolverError(f"rigid coupling: ball position mismatch {mismatch:.3e} m > "
+                              f"{tol:.3e} m after {k} body solves at t={body.t:.6g}")
+        force = -last["R"]
+        self.state = advance(old, c_pred, self.acceleration(force), force, h, self.dynamics)
+        self._book(old, h)
+        return RigidStepInfo(k, mismatch, self.penetration(), last["report"])
+
+    def _book(self, old: BallState, h: float) -> None:
+        """Add the step's contact and ground impulses to the ledger."""
+        ground = self.ground_force()
+        led = self.ledger
+        led.contact_impulse += impulse(-old.force.sum(axis=0), -self.state.force.sum(axis=0),
+                                       h, self.dynamics)
+        led.ground_impulse += impulse(led.ground_force, ground, h, self.dynamics)
+        led.ground_force = ground
+        led.guide_impulse += impulse(self.guide_force(old.force),
+                                     self.guide_force(self.state.force), h, self.dynamics)
+
+    def balance(self) -> dict[str, list[float]]:
+        """Momentum balance since the ledger's start (module docstring), (3,) lists [N s].
+
+        ``ball_impulse`` (from the balls' momenta) and ``body_impulse`` (from the body's
+        momentum, gravity and ground removed) should be opposite; ``contact_impulse`` is
+        the bookkept ``sum h R``.
+        """
+        led, t = self.ledger, self.body.t - self.ledger.time0
+        ball = (self.ball_momentum() - led.ball_momentum0 - self.mass.sum() * self.gravity * t
+                - led.guide_impulse)
+        body = (self.body_momentum() - led.body_momentum0 - self.body_mass * self.gravity * t
+                - led.ground_impulse)
+        return {"ball_impulse": ball.tolist(), "body_impulse": body.tolist(),
+                "contact_impulse": led.contact_impulse.tolist(),
+                "ground_impulse": led.ground_impulse.tolist(),
+                "guide_impulse": led.guide_impulse.tolist()}
+
+    # --- checkpoint -----------------------------------------------------------------------------
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Return the balls' state and ledger as named arrays (checkpoint stage ``rigid``)."""
+        led = self.ledger
+        return {"center": self.state.center, "velocity": self.state.velocity,
+                "acceleration": self.state.acceleration, "force": self.state.force,
+                "contact_impulse": led.contact_impulse, "ground_impulse": led.ground_impulse,
+                "ground_force": led.ground_force, "body_momentum0": led.body_momentum0,
+                "ball_momentum0": led.ball_momentum0, "guide_impulse": led.guide_impulse,
+                "time0": np.array([led.time0])}
+
+    def restore(self, arrays: dict[str, np.ndarray]) -> None:
+        """Set the balls' state and ledger from :meth:`arrays` (e.g. a checkpoint).
+
+        Raises:
+            InputError: an array is missing or of the wrong shape.
+
+        """
+        n = len(self.indices)
+        try:
+            state = [np.array(arrays[k], dtype=float).reshape(n, 3)
+                     for k in ("center", "velocity", "acceleration", "force")]
+            led = {k: np.array(arrays[k], dtype=float).reshape(3)
+                   for k in ("contact_impulse", "ground_impulse", "ground_force",
+                             "body_momentum0", "ball_momentum0", "guide_impulse")}
+            time0 = float(np.asarray(arrays["time0"]).reshape(-1)[0])
+        except (KeyError, ValueError) as exc:
+            raise InputError(f"checkpoint: rigid ball state unusable ({exc})") from None
+        self.state = BallState(*state)
+        self.ledger = Ledger(**led, time0=time0)
+        self.set_centers(self.state.center)
+
+
+class BoundaryFacets:
+    """The body's exterior triangles (P1 geometry of the deformed vertices) on this rank.
+
+    Penetration of a sphere ``(c, r)`` is ``max(0, r - min_T dist(c, T)) / r`` over the
+    triangles ``T``: the depth of the deepest point of the piecewise-linear surface inside
+    the ball (exact for P1; the vertices of P2 facets for P2). Valid while ``c`` is outside
+    the body.
+    """
+
+    def __init__(self, body: Any) -> None:
+        mesh = body.mesh
+        tdim = mesh.topology.dim
+        mesh.topology.create_connectivity(tdim - 1, tdim)
+        facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)
+        self.nodes = dolfinx.mesh.entities_to_geometry(mesh, tdim - 1, facets)[:, :3]
+        node_dof = np.zeros(mesh.geometry.x.shape[0], dtype=np.int64)
+        vertex_dofs = body.V.dofmap.list[:, :4].reshape(-1)
+        node_dof[mesh.geometry.dofmaps[0][:, :4].reshape(-1)] = vertex_dofs
+        self.dofs = node_dof[self.nodes]
+        self.X = mesh.geometry.x[self.nodes]
+        self.body, self.comm = body, mesh.comm
+
+    def triangles(self) -> np.ndarray:
+        """Deformed triangles (m, 3, 3) [m]."""
+        u = self.body.u.x.array.reshape(-1, 3)
+        return np.asarray(self.X + u[self.dofs])
+
+    def penetration(self, center: np.ndarray, radius: float) -> float:
+        """Penetration of the sphere as a fraction of ``radius`` (collective) [-]."""
+        tri = self.triangles()
+        local = float(point_triangle_distance(center, tri).min()) if len(tri) else math.inf
+        dist = self.comm.allreduce(local, op=MPI.MIN)
+        return max(0.0, radius - dist) / radius
+
+
+def point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Distance from point ``p`` (3,) to each triangle of ``tri`` (m, 3, 3) [m].
+
+    Inside the prism over the triangle: distance to its plane; else the nearest of the three
+    edges (segments).
+    """
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    height = np.einsum("ij,ij->i", p - a, n)
+    q = p - height[:, None] * n
+    inside = np.ones(len(tri), dtype=bool)
+    for s, e in ((a, b), (b, c), (c, a)):
+        inside &= np.einsum("ij,ij->i", np.cross(e - s, q - s), n) >= 0.0
+    edges = np.min([segment_distance(p, s, e) for s, e in ((a, b), (b, c), (c, a))], axis=0)
+    return np.where(inside, np.abs(height), edges)
+
+
+def segment_distance(p: np.ndarray, s: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """Distance from ``p`` (3,) to the segments ``s_i e_i`` ((m, 3) each) [m]."""
+    d = e - s
+    t = np.clip(np.einsum("ij,ij->i", p - s, d) / np.einsum("ij,ij->i", d, d), 0.0, 1.0)
+    return np.asarray(np.linalg.norm(p - (s + t[:, None] * d), axis=1))
+
+
+__all__ = ["BallCoupling", "BallState", "Ledger", "RigidBallOptions", "RigidCouplingOptions",
+           "RigidOptions", "RigidStepInfo", "advance", "broyden_solve", "impulse",
+           "initial_state", "point_triangle_distance", "predict", "scheme"]

@@ -1,0 +1,473 @@
+"""Regenerate the paper: run the figure scripts, build tables from JSON, fill the template.
+
+``python paper/make_paper.py [--quick] [--strict] [--reuse] [--run-external] [--no-external]
+[--no-run] [--build DIR]``
+(``make paper``, with ``PAPER_ARGS``):
+
+1. runs our scripts ``paper/scripts/{convergence,shell_limits,taylor,scenes}.py --build DIR
+   [--quick]`` one after the other (each writes ``DIR/data/<name>.json`` and figures);
+   ``--reuse`` keeps a JSON that exists from a run in the same mode; the full mode also runs
+   ``paper/scripts/{wavelength,artefacts}.py`` when present (``--run-external``: in quick mode
+   too; ``--no-external``: never);
+2. reads the optional sources (``DIR/data/wavelength.json``, ``DIR/data/artefacts.json``,
+   ``benchmarks/results/{speed_accuracy,decomposition*,shell_kernels,shell_solve,scaling*}
+   .json``): each gives a Markdown table in ``DIR/tables/`` and a section of the paper, or
+   the words "not run" and the command that produces it (``--strict``: an error);
+3. fills ``paper/paper.md.in``: ``{{source.key.path:format}}`` is a number read from the JSON
+   of ``source`` (keys separated by dots, list indices as integers, ``format`` a Python format
+   spec), ``{{block:name}}`` a generated table / figure / section. No number of the text is
+   typed by hand: an unresolvable placeholder is an error naming the script to run. Writes
+   ``DIR/paper.md`` and ``DIR/data/provenance.json`` (every placeholder, its value and its
+   JSON file);
+4. when ``pdflatex`` is on the PATH, also writes ``DIR/paper.tex`` and builds ``paper.pdf``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+PAPER = Path(__file__).resolve().parent
+REPO = PAPER.parent
+TEMPLATE = PAPER / "paper.md.in"
+OWN_SCRIPTS: tuple[str, ...] = ("convergence", "shell_limits", "taylor", "scenes")
+EXTERNAL_SCRIPTS: tuple[str, ...] = ("wavelength", "artefacts")
+PLACEHOLDER = re.compile(r"\{\{\s*([^{}:]+?)\s*(?::([^{}]*))?\}\}")
+
+
+class PaperError(RuntimeError):
+    """A source is missing or the template cannot be filled (the message says what to run)."""
+
+
+@dataclass(frozen=True)
+class Source:
+    """An optional JSON source of a paper section.
+
+    Attributes:
+        name: Key of the source in the template (``{{block:<name>}}``).
+        title: Section / table title.
+        pattern: Glob of its JSON file(s), relative to the repository (``{build}`` = build dir).
+        command: The command that produces it (printed when it is missing).
+        columns: Preferred table columns (dotted paths into nested row dicts); those absent
+            from the rows are skipped; empty: the first scalar columns.
+
+    """
+
+    name: str
+    title: str
+    pattern: str
+    command: str
+    columns: tuple[str, ...] = ()
+
+
+SOURCES: tuple[Source, ...] = (
+    Source("wavelength", "Wrinkle wavelength against theory and a volumetric bilayer",
+           "{build}/data/wavelength.json", "python paper/scripts/wavelength.py",
+           ("ratio", "thickness", "theory", "shell", "shell_error", "volumetric",
+            "volumetric_error", "shell_edges_per_wavelength", "shell_converged")),
+    Source("artefacts", "Element-boundary artefacts, P1 against P2",
+           "{build}/data/artefacts.json", "python paper/scripts/artefacts.py",
+           ("degree", "shell_edge", "coarse_edge", "on_edges.energy_fraction",
+            "on_edges.area_fraction", "on_edges.ratio", "on_edges.correlation", "wavelength",
+            "amplitude")),
+    Source("speed_accuracy", "Speed against accuracy (Pareto front)",
+           "benchmarks/results/speed_accuracy.json", "python benchmarks/speed_accuracy.py",
+           ("name", "vertices", "time_per_frame", "peak_rss_mib", "rms_rel", "max",
+            "bending_energy_rel_error", "wavelength", "pareto")),
+    Source("decomposition", "Solving in parts against solving whole",
+           "benchmarks/results/decomposition*.json", "python benchmarks/decomposition.py"),
+    Source("shell_kernels", "Shell energy kernels",
+           "benchmarks/results/shell_kernels.json", "python benchmarks/shell_kernels.py",
+           ("kind", "size", "reorder", "n_vertices", "terms_us_per_vertex.membrane_edge.order2",
+            "terms_us_per_vertex.bending.order2", "terms_us_per_vertex.penalty.order2",
+            "assembly.us_per_block", "peak_rss_mib")),
+    Source("shell_solve", "Sparse direct solvers for the shell Newton system",
+           "benchmarks/results/shell_solve.json", "python benchmarks/shell_solve.py",
+           ("mesh", "size", "system", "dofs", "backend", "ok", "analysis", "first", "refact",
+            "solve", "negative_pivots", "mumps_mb")),
+    Source("scaling", "Parallel scaling", "benchmarks/results/scaling*.json",
+           "python benchmarks/scaling.py"),
+)
+
+
+# --- running the scripts ---------------------------------------------------------------------
+
+def script_is_current(build: Path, name: str, quick: bool) -> bool:
+    """Tell whether ``data/<name>.json`` exists and was written in the same mode."""
+    path = build / "data" / f"{name}.json"
+    if not path.is_file():
+        return False
+    try:
+        return bool(json.loads(path.read_text())["meta"]["quick"]) == quick
+    except (KeyError, TypeError, ValueError):
+        return False
+
+
+def run_script(script: Path, build: Path, quick: bool) -> float:
+    """Run ``python SCRIPT --build BUILD [--quick]``; return its wall time [s]."""
+    cmd = [sys.executable, str(script), "--build", str(build)] + (["--quick"] if quick else [])
+    print(f"[paper] {' '.join(cmd[1:])}", flush=True)
+    started = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise PaperError(f"{script.relative_to(REPO)} failed (exit {proc.returncode}):\n"
+                         f"{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}")
+    return time.perf_counter() - started
+
+
+def run_scripts(args: argparse.Namespace) -> dict[str, float]:
+    """Run our scripts (and the external ones when asked); return the wall times."""
+    times: dict[str, float] = {}
+    external = (args.run_external or not args.quick) and not args.no_external
+    names = list(OWN_SCRIPTS) + (list(EXTERNAL_SCRIPTS) if external else [])
+    for name in names:
+        script = PAPER / "scripts" / f"{name}.py"
+        if name in EXTERNAL_SCRIPTS and not script.is_file():
+            continue
+        if args.reuse and script_is_current(args.build, name, args.quick):
+            print(f"[paper] reuse data/{name}.json", flush=True)
+            continue
+        times[name] = run_script(script, args.build, args.quick)
+    return times
+
+
+# --- data and placeholders --------------------------------------------------------------------
+
+def load_own(build: Path) -> dict[str, Any]:
+    """Load the JSON of our scripts; ``PaperError`` naming the script when one is missing."""
+    data = {}
+    for name in OWN_SCRIPTS:
+        path = build / "data" / f"{name}.json"
+        if not path.is_file():
+            raise PaperError(f"{path} is missing: run 'python paper/scripts/{name}.py "
+                             f"--build {build}' (or 'python paper/make_paper.py --quick')")
+        data[name] = json.loads(path.read_text())
+    return data
+
+
+def lookup(data: dict[str, Any], path: str) -> Any:
+    """Value at the dotted ``path`` (dict keys, integer list indices) of ``data``."""
+    value: Any = data
+    for key in path.split("."):
+        if isinstance(value, list) and re.fullmatch(r"-?\d+", key):
+            value = value[int(key)]
+        elif isinstance(value, dict) and key in value:
+            value = value[key]
+        else:
+            raise KeyError(key)
+    return value
+
+
+def fill(template: str, data: dict[str, Any], blocks: dict[str, str],
+         provenance: list[dict[str, Any]]) -> str:
+    """Replace every placeholder; record each number's source in ``provenance``."""
+    def replace(match: re.Match[str]) -> str:
+        path, spec = match.group(1), match.group(2) or ""
+        if path == "block":
+            if spec not in blocks:
+                raise PaperError(f"template block {{{{block:{spec}}}}} is not generated")
+            return blocks[spec]
+        try:
+            value = lookup(data, path)
+        except (KeyError, IndexError):
+            script = path.split(".", 1)[0]
+            raise PaperError(f"template placeholder {{{{{path}}}}}: no such key; rerun "
+                             f"'python paper/scripts/{script}.py'") from None
+        text = format(value, spec)
+        provenance.append({"placeholder": path, "format": spec, "value": value, "text": text,
+                           "file": f"data/{path.split('.', 1)[0]}.json"})
+        return text
+
+    return PLACEHOLDER.sub(replace, template)
+
+
+# --- tables ---------------------------------------------------------------------------------
+
+def fmt(value: Any) -> str:
+    """Format a table cell: 4 significant digits for floats, plain text otherwise."""
+    if isinstance(value, bool) or not isinstance(value, float):
+        return str(value)
+    return f"{value:.4g}"
+
+
+def rows_of(doc: Any) -> list[dict[str, Any]]:
+    """Return the row dicts of a benchmark JSON (``rows``, ``results``, ``cases``, a list)."""
+    if isinstance(doc, list):
+        return [r for r in doc if isinstance(r, dict)]
+    for key in ("rows", "results", "cases", "table", "points"):
+        if isinstance(doc, dict) and isinstance(doc.get(key), list):
+            return rows_of(doc[key])
+    return [doc] if isinstance(doc, dict) else []
+
+
+def scalar_columns(rows: Sequence[dict[str, Any]], limit: int = 9) -> list[str]:
+    """Return the first ``limit`` keys holding scalars (str, int, float, bool) in the rows."""
+    columns: list[str] = []
+    for row in rows:
+        for key, value in row.items():
+            if key not in columns and isinstance(value, str | int | float | bool):
+                columns.append(key)
+    return columns[:limit]
+
+
+def cell(row: dict[str, Any], column: str) -> Any:
+    """Return the value of a (dotted) column in a row; empty when absent."""
+    try:
+        return lookup(row, column)
+    except (KeyError, IndexError):
+        return ""
+
+
+def markdown_table(rows: Sequence[dict[str, Any]], columns: Sequence[str]) -> str:
+    """Markdown table of ``rows`` (dotted columns reach into nested dicts; missing: empty)."""
+    head = "| " + " | ".join(columns) + " |\n|" + "---|" * len(columns) + "\n"
+    body = "".join("| " + " | ".join(fmt(cell(r, c)) for c in columns) + " |\n"
+                   for r in rows)
+    return head + body
+
+
+def table_columns(source: Source, rows: Sequence[dict[str, Any]]) -> list[str]:
+    """Return the source's preferred columns present in the rows, else the first scalars."""
+    present = [c for c in source.columns if any(cell(r, c) != "" for r in rows)]
+    return present if len(present) >= 2 else scalar_columns(rows)
+
+
+def source_block(source: Source, build: Path, strict: bool) -> tuple[str, list[Path]]:
+    """Markdown section of an optional source: its tables and figures, or "not run"."""
+    pattern = source.pattern.format(build=build)
+    base = Path(pattern).parent if Path(pattern).is_absolute() else REPO / Path(pattern).parent
+    files = sorted(base.glob(Path(pattern).name))
+    if not files:
+        if strict:
+            raise PaperError(f"--strict: {pattern} is missing; run '{source.command}'")
+        return (f"*Not run* (no `{source.pattern.format(build='paper/build')}`; "
+                f"produce it with `{source.command}`).\n", [])
+    parts = []
+    for path in files:
+        doc = json.loads(path.read_text())
+        rows = mark_pareto(doc, rows_of(doc))
+        parts.append(f"Table: {source.title} (`{path.name}`).\n\n"
+                     + markdown_table(rows, table_columns(source, rows)))
+        parts.extend(figure_lines(doc, build) + sibling_figure(path, build))
+    named = f"figures/{source.name}.png"
+    if (build / named).is_file() and not any(named in part for part in parts):
+        parts.append(f"![{source.name}]({named})\n")  # e.g. wavelength.py's figure
+    return "\n".join(parts), files
+
+
+def mark_pareto(doc: Any, rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Add ``pareto = True/False`` to rows when the JSON lists Pareto-optimal row names."""
+    front = doc.get("pareto") if isinstance(doc, dict) else None
+    if not isinstance(front, list):
+        return rows
+    return [{**r, "pareto": r.get("name") in front} for r in rows]
+
+
+def sibling_figure(path: Path, build: Path) -> list[str]:
+    """Copy ``<json stem>.png`` beside a benchmark JSON into ``figures/``; its image line."""
+    png = path.with_suffix(".png")
+    if path.parent == build / "data" or not png.is_file():
+        return []
+    (build / "figures").mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(png, build / "figures" / png.name)
+    return [f"![{png.stem}](figures/{png.name})\n"]
+
+
+def figure_lines(doc: Any, build: Path) -> list[str]:
+    """Markdown image lines for the ``figures`` a JSON lists (paths relative to the build)."""
+    figures = doc.get("figures", []) if isinstance(doc, dict) else []
+    return [f"![{Path(f).stem}]({f})\n" for f in figures if (build / f).is_file()]
+
+
+# --- our blocks -------------------------------------------------------------------------------
+
+def scene_table(scenes: dict[str, Any]) -> str:
+    """Table of the three scenes: sizes, iterations, wall times, amplitudes."""
+    columns = ("scene", "frames", "body_vertices", "shell_vertices", "clusters",
+               "body_newton_iterations", "shell_iterations", "wall_time_s",
+               "wrinkle_amplitude_max")
+    rows = [{"scene": name, **entry} for name, entry in scenes.items()
+            if isinstance(entry, dict) and "figure" in entry]
+    return markdown_table(rows, columns)
+
+
+def convergence_table(conv: dict[str, Any]) -> str:
+    """Table of the body L2 errors per size and degree."""
+    rows = [{"degree": k, "n": n, "l2_error": e, "fitted_rate": v["rate"]}
+            for k, v in conv["body"].items() for n, e in zip(v["n"], v["l2_error"],
+                                                              strict=True)]
+    return markdown_table(rows, ("degree", "n", "l2_error", "fitted_rate"))
+
+
+def taylor_table(taylor: dict[str, Any]) -> str:
+    """Table of the fitted Taylor slopes per shell term."""
+    rows = [{"term": k, "value_slope": v["slope_value"], "gradient_slope": v["slope_gradient"]}
+            for k, v in taylor["terms"].items()]
+    return markdown_table(rows, ("term", "value_slope", "gradient_slope"))
+
+
+def limits_table(limits: dict[str, Any]) -> str:
+    """Table of the cylinder / sphere bending limits against the closed forms."""
+    rows = [{"case": f"cylinder, {v['lattice']} lattice, {v['angle_deg']:g} deg",
+             "limit": v["limit"], "closed_form": v["predicted"], "order": v["order"],
+             "rel_error": v["limit_rel_error"]} for v in limits["cylinder"].values()]
+    s = limits["sphere"]
+    rows.append({"case": "icosphere / 16 pi", "limit": s["limit"], "closed_form":
+                 s["predicted"], "order": s["order"], "rel_error": s["limit_abs_error"]})
+    return markdown_table(rows, ("case", "limit", "closed_form", "order", "rel_error"))
+
+
+def figure(build: Path, rel: str, caption: str) -> str:
+    """Markdown image with caption; ``PaperError`` when the file is missing."""
+    if not (build / rel).is_file():
+        raise PaperError(f"figure {rel} missing from {build}")
+    return f"![{caption}]({rel})\n\n*{caption}*\n"
+
+
+SCENE_CAPTIONS: dict[str, str] = {
+    "default": "Default scene: soft bar with a stiff skin compressed along its axis.",
+    "bent_bar": "Bent bar: end faces turned in opposite directions; the lower face is "
+                "compressed.",
+    "twisted_cylinder": "Twisted cylinder: one end clamped, the other turned about the axis.",
+}
+FIGURES: dict[str, tuple[str, str]] = {
+    "figure_convergence": ("figures/body_convergence.png",
+                           "L2 error of the body displacement against h, P1 and P2."),
+    "figure_torsion": ("figures/torsion.png", "Relative torque error of the twisted P2 "
+                       "cylinder against the circular and the meshed polar moment."),
+    "figure_limits": ("figures/shell_limits.png", "Hinge bending energy density on a unit "
+                      "cylinder: relative distance to the extrapolated limit."),
+    "figure_taylor": ("figures/taylor.png", "Taylor remainders of the shell energy terms "
+                      "(value and gradient)."),
+}
+
+
+def own_blocks(data: dict[str, Any], build: Path) -> dict[str, str]:
+    """Tables and figures of our scripts."""
+    scenes = data["scenes"]
+    captions: dict[str, Callable[[], str]] = {
+        "table_convergence": lambda: convergence_table(data["convergence"]),
+        "table_taylor": lambda: taylor_table(data["taylor"]),
+        "table_limits": lambda: limits_table(data["shell_limits"]),
+        "table_scenes": lambda: scene_table(scenes),
+    }
+    blocks = {k: f() for k, f in captions.items()}
+    for name, what in SCENE_CAPTIONS.items():
+        blocks[f"figure_{name}"] = figure(build, scenes[name]["figure"], f"{what} Last frame, "
+                                          "coloured by log10 of the bending energy density.")
+    for key, (rel, caption) in FIGURES.items():
+        blocks[key] = figure(build, rel, caption)
+    return blocks
+
+
+def write_tables(build: Path, blocks: dict[str, str]) -> None:
+    """Write every table block to ``tables/<name>.md``."""
+    folder = build / "tables"
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, text in blocks.items():
+        if "| " in text:
+            (folder / f"{name.removeprefix('table_')}.md").write_text(text)
+
+
+# --- LaTeX (only when pdflatex exists) ---------------------------------------------------------
+
+def markdown_to_latex(markdown: str) -> str:
+    """Convert Markdown to LaTeX minimally (headings, images, tables as verbatim)."""
+    out = [r"\documentclass{article}", r"\usepackage{graphicx,amsmath}", r"\begin{document}"]
+    in_table = False
+    for line in markdown.splitlines():
+        if line.startswith("|") != in_table:
+            out.append(r"\begin{verbatim}" if not in_table else r"\end{verbatim}")
+            in_table = not in_table
+        heading = re.match(r"(#+) (.*)", line)
+        image = re.match(r"!\[(.*)\]\((.*)\)", line)
+        if heading and not in_table:
+            level = min(len(heading.group(1)), 3)
+            out.append("\\" + "sub" * (level - 1) + "section*{" + heading.group(2) + "}")
+        elif image:
+            out.append(r"\begin{center}\includegraphics[width=0.7\linewidth]{"
+                       + image.group(2) + "}\\end{center}")
+        else:
+            out.append(line if in_table else line.replace("%", r"\%").replace("_", r"\_"))
+    out += [r"\end{verbatim}"] if in_table else []
+    return "\n".join(out + [r"\end{document}", ""])
+
+
+def build_pdf(build: Path, markdown: str) -> str:
+    """Write ``paper.tex`` and run pdflatex when available; return what was done."""
+    if shutil.which("pdflatex") is None:
+        return "pdflatex not found: Markdown only"
+    (build / "paper.tex").write_text(markdown_to_latex(markdown))
+    proc = subprocess.run(["pdflatex", "-interaction=nonstopmode", "paper.tex"], cwd=build,
+                          capture_output=True, text=True)
+    return "paper.pdf built" if proc.returncode == 0 else "pdflatex failed (see paper.log)"
+
+
+# --- main -------------------------------------------------------------------------------------
+
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """Command line of ``make_paper.py``."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--build", type=Path, default=PAPER / "build", help="build directory")
+    parser.add_argument("--quick", action="store_true", help="tiny sizes, few frames (CI)")
+    parser.add_argument("--strict", action="store_true",
+                        help="fail when an optional source (benchmarks, wavelength, ...) is "
+                        "missing instead of writing 'not run'")
+    parser.add_argument("--reuse", action="store_true",
+                        help="do not rerun a script whose JSON exists in the same mode")
+    parser.add_argument("--run-external", action="store_true",
+                        help="run paper/scripts/wavelength.py and artefacts.py in --quick "
+                        "mode too (the full mode runs them by default)")
+    parser.add_argument("--no-external", action="store_true",
+                        help="never run wavelength.py / artefacts.py (use their JSON if any)")
+    parser.add_argument("--no-run", action="store_true",
+                        help="run no script: only rebuild the paper from existing JSON")
+    args = parser.parse_args(argv)
+    args.build = args.build.resolve()
+    return args
+
+
+def make(args: argparse.Namespace) -> Path:
+    """Run everything and write ``paper.md``; return its path."""
+    args.build.mkdir(parents=True, exist_ok=True)
+    times = {} if args.no_run else run_scripts(args)
+    data = load_own(args.build)
+    blocks = own_blocks(data, args.build)
+    used: dict[str, list[str]] = {}
+    for source in SOURCES:
+        blocks[source.name], files = source_block(source, args.build, args.strict)
+        used[source.name] = [str(f) for f in files]
+    write_tables(args.build, blocks)
+    provenance: list[dict[str, Any]] = []
+    text = fill(TEMPLATE.read_text(), data, blocks, provenance)
+    path = args.build / "paper.md"
+    path.write_text(text)
+    (args.build / "data" / "provenance.json").write_text(json.dumps(
+        {"placeholders": provenance, "optional_sources": used, "script_wall_times_s": times,
+         "quick": args.quick}, indent=1, default=str) + "\n")
+    print(f"[paper] wrote {path} ({len(provenance)} numbers from JSON); "
+          f"{build_pdf(args.build, text)}", flush=True)
+    return path
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; exit 1 with a one-line message on a missing source."""
+    try:
+        make(parse_args(argv))
+    except PaperError as exc:
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

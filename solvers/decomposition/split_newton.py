@@ -1,0 +1,468 @@
+r"""The whole problem distributed by stencils: monolithic Newton with the low-rank penalty.
+
+The reference parallel method at scale (MISSION.md section 7). Every rank ``r`` owns a vertex
+set ``I_r`` (the cluster partition merged to the number of ranks, :mod:`.patches`) and
+
+* evaluates only the stencils touching ``I_r`` (a :class:`~.patch_energy.PatchEnergy`: edges,
+  faces, hinges with a vertex in ``I_r``), so its local gradient rows ``I_r`` and Hessian rows
+  ``I_r`` (all columns) are exactly the global ones; the energy is the sum over ranks of each
+  rank's *owned* stencils (every stencil counted once), an ``Allreduce``; the gradient's owned
+  rows are allgathered (3n numbers) so every rank runs the same Newton decisions;
+* holds only its rows of the Newton matrix. The penalty ``W_P = k_P ||H (x - y)||^2`` has the
+  Hessian ``G^T G`` with ``G = sqrt(2 k_P) (H kron I_3)`` (3c x 3n), which is dense over each
+  cluster support: assembled it fills in. As in :class:`solvers.linear.AugmentedPenaltySolver`
+  the step solves the quasi-definite augmented system
+
+  .. math::  \begin{bmatrix} A + \tau I & G^T \\ G & -I \end{bmatrix}
+             \begin{bmatrix} dx \\ \mu \end{bmatrix} = \begin{bmatrix} -g \\ 0 \end{bmatrix},
+
+  eliminating ``mu = G dx`` gives ``(A + tau I + G^T G) dx = -g``. Its inertia is
+  ``In(-I) + In(A + tau I + G^T G)`` (Haynsworth), so more than ``3c`` negative pivots
+  (MUMPS ``INFOG(12)``) mean the reduced Hessian is indefinite and the Newton solver shifts;
+* the augmented matrix is a ``MATMPIAIJ`` whose rows are split by rank (rank r: the dofs of
+  ``I_r``, then the multipliers of the clusters whose smallest support vertex is in ``I_r``);
+  its pattern is set once (``MatSetPreallocationCOO``), values by ``MatSetValuesCOO`` (same
+  nonzero state: MUMPS' analysis runs once), factorised by MUMPS LDL^T (``SYM = 2``) with the
+  controls of :func:`solvers.linear.set_mumps_controls`.
+
+The Newton iteration itself (line search, shifts, tolerances, stagnation stop) is
+:class:`solvers.shell_newton.ShellNewtonSolver`, unchanged: this module gives it an energy
+whose value / gradient are reduced over ranks and a linear system that is distributed.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from models.backend import MPI, PETSc, begin_petsc_log
+from models.errors import InputError
+from models.shell.energy import ShellEval
+from models.shell.penalty import PenaltyOperator, penalty_factor
+from solvers.decomposition.patch_energy import PatchEnergy, ShellProblem
+from solvers.decomposition.patches import merge_partition
+from solvers.linear import FactorReport, LinearSolverOptions, set_mumps_controls
+from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver, ShellSolveReport
+
+_SYMBOLIC_EVENTS = {"lu": "MatLUFactorSym", "cholesky": "MatCholFctrSym",
+                    "ldlt": "MatCholFctrSym"}
+
+
+def rank_of_vertices(problem: ShellProblem, partition: np.ndarray | None,
+                     size: int) -> np.ndarray:
+    """(n,) owning rank of each vertex.
+
+    The cluster partition merged down to ``size`` compact groups (:func:`merge_partition`)
+    when given, else contiguous index ranges.
+    """
+    n = problem.topology.n_vertices
+    if partition is not None and size > 1:
+        return merge_partition(problem.topology, partition, size)
+    return np.minimum((np.arange(n) * size) // n, size - 1).astype(np.int64)
+
+
+@dataclass(frozen=True, eq=False)
+class SplitLayout:
+    """Global PETSc numbering of the augmented unknowns ``[dx; mu]`` split by rank.
+
+    Rank r owns the PETSc rows ``offsets[r] .. offsets[r + 1] - 1``: first the 3 dofs of each
+    of its vertices (sorted), then the 3 multipliers of each of its clusters (sorted).
+
+    Attributes:
+        vertex_rank: (n,) rank owning each vertex.
+        cluster_rank: (c,) rank owning each penalty row (owner of its smallest support vertex).
+        vertex_index: (n,) PETSc index of dof ``3 v`` (dof ``3 v + k`` is this + k).
+        cluster_index: (c,) PETSc index of multiplier ``3 c`` (+ k for coordinate k).
+        offsets: (size + 1,) PETSc row ranges of the ranks.
+        vertex_order: (n,) vertices ordered by rank then index (the allgather order).
+
+    """
+
+    vertex_rank: np.ndarray
+    cluster_rank: np.ndarray
+    vertex_index: np.ndarray
+    cluster_index: np.ndarray
+    offsets: np.ndarray
+    vertex_order: np.ndarray
+
+    @classmethod
+    def build(cls, vertex_rank: np.ndarray, H: sp.csr_matrix | None,
+              size: int) -> SplitLayout:
+        """Build the numbering rank by rank (see the class docstring)."""
+        c = 0 if H is None else H.shape[0]
+        first = (np.minimum.reduceat(H.indices, H.indptr[:-1]) if H is not None and c
+                 else np.zeros(0, np.int64))
+        cluster_rank = vertex_rank[first].astype(np.int64)
+        n_v = np.bincount(vertex_rank, minlength=size)
+        n_c = np.bincount(cluster_rank, minlength=size)
+        offsets = np.concatenate([[0], np.cumsum(3 * (n_v + n_c))]).astype(np.int64)
+        order = np.argsort(vertex_rank, kind="stable")
+        vertex_index = np.empty(vertex_rank.size, dtype=np.int64)
+        local_v = np.arange(vertex_rank.size) - np.repeat(np.cumsum(n_v) - n_v, n_v)
+        vertex_index[order] = offsets[vertex_rank[order]] + 3 * local_v
+        c_order = np.argsort(cluster_rank, kind="stable")
+        cluster_index = np.empty(c, dtype=np.int64)
+        local_c = np.arange(c) - np.repeat(np.cumsum(n_c) - n_c, n_c)
+        cluster_index[c_order] = (offsets[cluster_rank[c_order]] + 3 * n_v[cluster_rank[c_order]]
+                                  + 3 * local_c)
+        return cls(vertex_rank=vertex_rank.astype(np.int64), cluster_rank=cluster_rank,
+                   vertex_index=vertex_index, cluster_index=cluster_index, offsets=offsets,
+                   vertex_order=order.astype(np.int64))
+
+
+class OwnedRows:
+    """Rows of the Hessian held by one rank (owned vertex dofs x local columns).
+
+    Stands in for the global Hessian in :class:`ShellNewtonSolver`, which only reads its
+    diagonal (for the shift scale); the diagonal is allgathered, so every rank computes the
+    same shift.
+
+    Attributes:
+        matrix: (3|I|, 3 n_local) CSR rows of the local Hessian (local column numbering).
+        full_diagonal: (3n,) the global Hessian diagonal (identical on every rank).
+
+    """
+
+    def __init__(self, matrix: sp.csr_matrix, full_diagonal: np.ndarray) -> None:
+        self.matrix, self.full_diagonal = matrix, full_diagonal
+
+    def diagonal(self) -> np.ndarray:
+        """Return the global diagonal (3n,)."""
+        return self.full_diagonal
+
+
+class SplitShellEnergy:
+    """W(x) evaluated by stencils across ranks (the ShellEnergy interface on every rank).
+
+    Args:
+        problem: The global problem (its ``params.penalty_hessian`` is forced to "low_rank":
+            the penalty Hessian is carried by G in the augmented system).
+        layout: Ownership and numbering.
+        comm: Communicator.
+
+    Attributes:
+        patch: This rank's stencils as a :class:`PatchEnergy` (owned vertices first).
+        topology: Global topology (for diagnostics of the Newton solver).
+        rest: Global rest state.
+
+    """
+
+    def __init__(self, problem: ShellProblem, layout: SplitLayout, comm: Any) -> None:
+        low = replace(problem, params=replace(problem.params, penalty_hessian="low_rank"))
+        self.comm, self.layout = comm, layout
+        self.topology, self.rest = problem.topology, problem.rest
+        owned = np.flatnonzero(layout.vertex_rank == comm.rank)
+        self.patch = PatchEnergy(low, owned)
+        counts = np.bincount(layout.vertex_rank, minlength=comm.size)
+        self._counts3 = 3 * counts
+        self._displs3 = np.concatenate([[0], np.cumsum(self._counts3)[:-1]])
+        self._dof_order = (3 * layout.vertex_order[:, None] + np.arange(3)).reshape(-1)
+
+    @property
+    def n_vertices(self) -> int:
+        """Global number of vertices n."""
+        return self.topology.n_vertices
+
+    def allgather_owned(self, owned: np.ndarray) -> np.ndarray:
+        """Full (3n,) vector from every rank's owned dof values (3|I_r|,), identical on all."""
+        buf = np.empty(int(self._counts3.sum()))
+        self.comm.Allgatherv([np.ascontiguousarray(owned, dtype=np.float64), MPI.DOUBLE],
+                             [buf, self._counts3, self._displs3, MPI.DOUBLE])
+        full = np.empty_like(buf)
+        full[self._dof_order] = buf
+        return full
+
+    def _local_x(self, x: np.ndarray) -> np.ndarray:
+        """Local positions (owned, then halo) from the global x (n, 3)."""
+        return np.asarray(x, dtype=np.float64).reshape(-1, 3)[self.patch.local]
+
+    def value(self, x: np.ndarray) -> float:
+        """``W(x) = sum_r`` (energy of rank r's owned stencils), reduced over ranks."""
+        self.patch.set_state(np.asarray(x, dtype=np.float64).reshape(-1, 3))
+        return float(self.comm.allreduce(self.patch.owned_energy(), op=MPI.SUM))
+
+    def evaluate(self, x: np.ndarray, order: int = 2, hessian: str | None = None) -> ShellEval:
+        """Reduced value, full gradient (allgathered) and this rank's Hessian rows."""
+        xl = self._local_x(x)
+        ev = self.patch.energy.evaluate(xl, order, hessian)  # type: ignore[arg-type]
+        m = self.patch.n_free_dofs
+        value = self.value(x)
+        grad = self.allgather_owned(ev.grad[:m]) if ev.grad is not None else None
+        hess = None
+        if ev.hess is not None:
+            rows = ev.hess[:m]
+            hess = OwnedRows(rows, self.allgather_owned(rows.diagonal()))
+        return ShellEval(value=value, grad=grad, hess=hess, penalty_factor=None, terms={})
+
+
+def _factor_g(problem: ShellProblem) -> sp.csr_matrix | None:
+    """G = sqrt(2 k_P) (H kron I3), or None without penalty."""
+    if problem.H is None or problem.params.k_P == 0:
+        return None
+    op = PenaltyOperator.from_matrix(problem.H, problem.topology.n_vertices)
+    return penalty_factor(op, problem.params.k_P)
+
+
+@dataclass(frozen=True, eq=False)
+class _Coo:
+    """COO pattern of this rank's rows of the augmented matrix and its constant values.
+
+    ``rows``/``cols`` are PETSc indices; the first ``n_hess`` entries take the Hessian rows'
+    data (in CSR order), the rest are the constant G, G^T and -I entries ``fixed``.
+    """
+
+    rows: np.ndarray
+    cols: np.ndarray
+    n_hess: int
+    fixed: np.ndarray
+    diag: np.ndarray
+
+
+def _dof_index(layout: SplitLayout, vertices: np.ndarray) -> np.ndarray:
+    """PETSc index of every dof (3 per vertex) of ``vertices``, vertex-major."""
+    return (layout.vertex_index[vertices][:, None] + np.arange(3)).reshape(-1)
+
+
+def _penalty_entries(layout: SplitLayout, g: sp.csr_matrix, owned_dofs: np.ndarray,
+                     rank: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(rows, cols, values) of G (owned multiplier rows), G^T (owned dof rows) and -I."""
+    n_dof = g.shape[1]
+    mult_index = (layout.cluster_index[:, None] + np.arange(3)).reshape(-1)
+    dof_index = (layout.vertex_index[:, None] + np.arange(3)).reshape(-1)
+    coo = g.tocoo()
+    mine_g = layout.cluster_rank[coo.row // 3] == rank
+    is_owned = np.zeros(n_dof, dtype=bool)
+    is_owned[owned_dofs] = True
+    mine_gt = is_owned[coo.col]
+    mults = mult_index[np.flatnonzero(layout.cluster_rank.repeat(3) == rank)]
+    rows = np.concatenate([mult_index[coo.row[mine_g]], dof_index[coo.col[mine_gt]], mults])
+    cols = np.concatenate([dof_index[coo.col[mine_g]], mult_index[coo.row[mine_gt]], mults])
+    vals = np.concatenate([coo.data[mine_g], coo.data[mine_gt], -np.ones(mults.size)])
+    return rows, cols, vals
+
+
+def _coo_pattern(energy: SplitShellEnergy, hess_rows: sp.csr_matrix,
+                 g: sp.csr_matrix | None) -> _Coo:
+    """COO entries of this rank: Hessian rows (local columns mapped to PETSc), G, G^T, -I."""
+    layout, patch = energy.layout, energy.patch
+    row_dofs = _dof_index(layout, patch.interior)
+    col_dofs = _dof_index(layout, patch.local)
+    counts = np.diff(hess_rows.indptr)
+    rows = np.repeat(row_dofs, counts)
+    cols = col_dofs[hess_rows.indices]
+    diag = np.flatnonzero(rows == cols)
+    if g is None:
+        return _Coo(rows, cols, rows.size, np.zeros(0), diag)
+    owned_dofs = (3 * patch.interior[:, None] + np.arange(3)).reshape(-1)
+    p_rows, p_cols, p_vals = _penalty_entries(layout, g, owned_dofs, energy.comm.rank)
+    return _Coo(np.concatenate([rows, p_rows]), np.concatenate([cols, p_cols]), rows.size,
+                p_vals, diag)
+
+
+class SplitAugmentedSystem:
+    """The distributed augmented Newton system (the ShellNewtonSolver linear interface).
+
+    Args:
+        energy: The split energy (gives the layout and the local rows).
+        g: The penalty factor G (None without penalty: then the system is just A).
+        options: MUMPS options; ``symmetric`` "ldlt" (default of the split solve) or "lu".
+
+    """
+
+    def __init__(self, energy: SplitShellEnergy, g: sp.csr_matrix | None,
+                 options: LinearSolverOptions) -> None:
+        if options.backend != "mumps" or options.symmetric == "cholesky":
+            raise InputError("LinearSolverOptions: the split augmented solve needs backend "
+                             f"'mumps' with 'ldlt' or 'lu', got {options.backend}/"
+                             f"{options.symmetric}")
+        begin_petsc_log()  # symbolic factorisations are counted from PETSc's log events
+        self.energy, self.g, self.options = energy, g, options
+        self.expected_negative = 0 if g is None else g.shape[0]
+        self.mat: Any = None
+        self.local_nnz = 0
+        self.analyses = 0
+        self.memory_mb = (0.0, 0.0)  # MUMPS INFOG(21) max per rank, INFOG(22) sum, in MB
+        self._times = [0.0, 0.0, 0.0]  # factorise, analysis, solve
+
+    def _setup(self, hess_rows: sp.csr_matrix) -> None:
+        """COO preallocation of this rank's rows, vectors and the KSP (once)."""
+        self._coo = _coo_pattern(self.energy, hess_rows, self.g)
+        offsets = self.energy.layout.offsets
+        r = self.energy.comm.rank
+        local, total = int(offsets[r + 1] - offsets[r]), int(offsets[-1])
+        mat: Any = PETSc.Mat().create(comm=self.energy.comm)
+        mat.setSizes(((local, total), (local, total)))
+        mat.setType(PETSc.Mat.Type.AIJ)
+        mat.setPreallocationCOO(self._coo.rows.astype(PETSc.IntType),
+                                self._coo.cols.astype(PETSc.IntType))
+        mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        self.mat, self.local_nnz = mat, int(self._coo.rows.size)
+        self._values = np.zeros(self._coo.rows.size, dtype=PETSc.ScalarType)
+        self._values[self._coo.n_hess:] = self._coo.fixed
+        self.ksp = self._create_ksp()
+        self.rhs, self.sol = mat.createVecs()
+
+    def _create_ksp(self) -> Any:
+        """KSPPREONLY + PCFactor(MUMPS), controls set on the factor matrix."""
+        ksp = PETSc.KSP().create(comm=self.energy.comm)
+        ksp.setOperators(self.mat)
+        ksp.setType(PETSc.KSP.Type.PREONLY)
+        pc = ksp.getPC()
+        pc.setType("lu" if self.options.symmetric == "lu" else "cholesky")
+        pc.setFactorSolverType("mumps")
+        pc.setFactorSetUpSolverType()
+        factor = pc.getFactorMatrix()
+        # ICNTL(13) = 1: no ScaLAPACK on the root front, whose pivots INFOG(12) would not
+        # count (the inertia test would miss negative eigenvalues on more than one rank)
+        factor.setMumpsIcntl(13, 1)
+        set_mumps_controls(factor, self.options)
+        return ksp
+
+    def factorize(self, ev: Any, tau: float) -> FactorReport:
+        """Insert this rank's rows of the augmented matrix with ``A + tau I``; factorise."""
+        hess = ev.hess
+        if not isinstance(hess, OwnedRows):
+            raise InputError("SplitAugmentedSystem.factorize: expected the split energy's "
+                             "owned Hessian rows")
+        if self.mat is None:
+            self._setup(hess.matrix)
+        n_hess = self._coo.n_hess
+        self._values[:n_hess] = hess.matrix.data
+        self._values[self._coo.diag] += tau
+        self.mat.setValuesCOO(self._values)
+        return self._factor(tau)
+
+    def _symbolic_count(self) -> int:
+        """Symbolic factorisations logged by PETSc so far."""
+        name = _SYMBOLIC_EVENTS[self.options.symmetric]
+        return int(PETSc.Log.Event(name).getPerfInfo()["count"])
+
+    def _factor(self, tau: float) -> FactorReport:
+        """PCSetUp (numeric, symbolic the first time); MUMPS INFOG(1) / INFOG(12)."""
+        pc, before = self.ksp.getPC(), self._symbolic_count()
+        start = time.perf_counter()
+        try:
+            pc.setUp()
+            failed = int(pc.getFailedReason())
+        except PETSc.Error:
+            failed = -1
+        elapsed = time.perf_counter() - start
+        self.analyses += self._symbolic_count() - before
+        first = self._times[0] == 0.0
+        self._times[0] += elapsed
+        self._times[1] += elapsed if first else 0.0
+        report = self._report(pc, failed, tau, elapsed)
+        if not report.success:  # the factor keeps its error flag: start from a fresh KSP
+            self.ksp.destroy()
+            self.ksp = self._create_ksp()
+        return report
+
+    def _report(self, pc: Any, failed: int, tau: float, elapsed: float) -> FactorReport:
+        """FactorReport with the inertia count against the 3c expected negative pivots."""
+        negatives, reason = None, "ok" if failed == 0 else f"PCFailedReason {failed}"
+        if failed != -1:
+            factor = pc.getFactorMatrix()
+            infog1 = int(factor.getMumpsInfog(1))
+            self.memory_mb = (float(factor.getMumpsInfog(21)), float(factor.getMumpsInfog(22)))
+            if infog1 < 0:
+                failed, reason = 1, f"MUMPS INFOG(1)={infog1}"
+            elif self.options.symmetric != "lu":
+                negatives = int(factor.getMumpsInfog(12))
+        return FactorReport(success=failed == 0, reason=reason, negative_pivots=negatives,
+                            expected_negative=self.expected_negative, numeric_time=elapsed,
+                            shift=float(tau))
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """``dx`` (3n,) on every rank from the full right-hand side ``rhs`` (3n,)."""
+        start = time.perf_counter()
+        owned = (3 * self.energy.patch.interior[:, None] + np.arange(3)).reshape(-1)
+        local = np.zeros(self.rhs.getLocalSize())
+        local[: owned.size] = rhs[owned]
+        self.rhs.setArray(local)
+        self.ksp.solve(self.rhs, self.sol)
+        dx = self.energy.allgather_owned(self.sol.getArray()[: owned.size])
+        self._times[2] += time.perf_counter() - start
+        return dx
+
+    def times(self) -> tuple[float, float, float]:
+        """Accumulated (factorise, first factorisation incl. analysis, solve) seconds."""
+        return self._times[0], self._times[1], self._times[2]
+
+
+@dataclass(frozen=True)
+class SplitInfo:
+    """What the split solve distributed (this rank's view).
+
+    Attributes:
+        owned_vertices: Vertices owned by this rank.
+        local_vertices: Vertices this rank's stencils read (owned + halo).
+        local_matrix_entries: Entries of the augmented matrix stored on this rank (its rows).
+        global_size: Rows of the augmented matrix (3n + 3c).
+        symbolic_analyses: Symbolic factorisations during the solve (1 = analysis reused).
+        factor_memory_mb: MUMPS memory of the last factorisation (INFOG(21): largest rank,
+            INFOG(22): all ranks), MB.
+
+    """
+
+    owned_vertices: int
+    local_vertices: int
+    local_matrix_entries: int
+    global_size: int
+    symbolic_analyses: int
+    factor_memory_mb: tuple[float, float] = (0.0, 0.0)
+
+
+class SplitNewtonSolver:
+    """Monolithic Newton split by stencils over ``comm`` (see the module docstring).
+
+    Build once per problem; :meth:`minimize` may be called for several frames (new targets
+    through :meth:`set_target`), reusing the symbolic analysis.
+
+    Args:
+        problem: The global shell problem (the same on every rank).
+        partition: (n,) cluster partition used for the ownership (None: index ranges).
+        options: Newton options; ``options.augmented_linear`` is the MUMPS LDL^T / LU.
+        comm: Communicator (default COMM_WORLD).
+
+    """
+
+    def __init__(self, problem: ShellProblem, partition: np.ndarray | None = None,
+                 options: ShellNewtonOptions | None = None, comm: Any = None) -> None:
+        self.comm = comm if comm is not None else MPI.COMM_WORLD
+        self.options = options or ShellNewtonOptions()
+        vertex_rank = rank_of_vertices(problem, partition, self.comm.size)
+        g = _factor_g(problem)
+        h = sp.csr_matrix(problem.H) if g is not None else None
+        self.layout = SplitLayout.build(vertex_rank, h, self.comm.size)
+        self.energy = SplitShellEnergy(problem, self.layout, self.comm)
+        self.linear = SplitAugmentedSystem(self.energy, g, self.options.augmented_linear)
+        self.newton = ShellNewtonSolver(self.energy, self.options)  # type: ignore[arg-type]
+        self.newton.linear = self.linear
+
+    def set_target(self, y: np.ndarray) -> None:
+        """Set a new penalty target (n, 3) for the next frame (the same on every rank)."""
+        self.energy.patch.energy.set_target(np.asarray(y)[self.energy.patch.local])
+
+    def minimize(self, x0: np.ndarray) -> tuple[np.ndarray, ShellSolveReport]:
+        """Newton from ``x0`` (n, 3, the same on every rank); x identical on every rank."""
+        return self.newton.minimize(np.asarray(x0, dtype=np.float64))
+
+    def info(self) -> SplitInfo:
+        """Sizes of this rank's share (after at least one factorisation)."""
+        return SplitInfo(owned_vertices=self.energy.patch.n_vertices,
+                         local_vertices=int(self.energy.patch.local.size),
+                         local_matrix_entries=self.linear.local_nnz,
+                         global_size=int(self.layout.offsets[-1]),
+                         symbolic_analyses=self.linear.analyses,
+                         factor_memory_mb=self.linear.memory_mb)
+
+
+def split_minimize(problem: ShellProblem, x0: np.ndarray, partition: np.ndarray | None = None,
+                   options: ShellNewtonOptions | None = None,
+                   comm: Any = None) -> tuple[np.ndarray, ShellSolveReport]:
+    """One-shot :class:`SplitNewtonSolver` solve; ``(x, report)`` identical on every rank."""
+    return SplitNewtonSolver(problem, partition, options, comm).minimize(x0)

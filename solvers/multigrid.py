@@ -1,0 +1,563 @@
+"""Geometric multigrid on the subdivision hierarchy: preconditioned CG for the shell Newton system.
+
+The shell is built by subdividing a coarse triangle mesh ``L`` times (MISSION.md section 4,
+:mod:`models.embedding.subdivision`): ``V_{l+1} = S_l V_l``. Those matrices are the
+prolongations of a geometric multigrid (Briggs, Henson & McCormick, A Multigrid Tutorial,
+2nd ed., ch. 3 and 8): acting on the flat dof vector (dof ``3 i + k``) a level's prolongation is
+``P_l = S_l (x) I_3``, and the level operators are Galerkin products
+
+    A_l = P_l^T A_{l+1} P_l            (PETSc MatPtAP, the symbolic product reused),
+
+so the coarse problems are the variational restrictions of the fine one and the two-grid
+error propagation ``(I - P A_c^{-1} P^T A)`` is an A-orthogonal projection. Linear subdivision
+reproduces every field that is linear in the coarse positions (the rigid and the uniform
+stretch modes of the membrane) exactly.
+
+The penalty ``k_P ||H (x - y)||^2`` enters the Newton matrix as the low-rank ``G^T G``
+(``G = sqrt(2 k_P) H (x) I_3``, :mod:`models.shell.penalty`), whose assembled form fills in
+(every pair of vertices sharing a cluster). It is never assembled on the fine levels: each level
+operator is ``A_l + G_l^T G_l`` applied matrix-free (a PETSc ``MatPython``: one sparse product
+with ``A_l`` and two with ``G_l = G_{l+1} P_l``, a constant chain), whose diagonal
+``diag(A_l) + colsum(G_l^2)`` feeds the Jacobi smoother. Only the coarsest level is assembled,
+``A_0 + G_0^T G_0``, and factorised by MUMPS Cholesky (analysis reused).
+
+Smoother: Chebyshev (degree ``smoother_degree``) on Jacobi, eigenvalue bounds
+``[0.1, 1.1] lambda_max`` estimated by PETSc. The Krylov method is CG (the Newton matrix must
+be SPD: use the PSD Hessian modes "gauss_newton" / "projected" or the mixed far-field mode),
+with PETSc's residual norm set to the *unpreconditioned* recursive residual; after the solve
+the true relative residual ``||b - A x|| / ||b||`` is recomputed with scipy and is the
+acceptance test (MISSION.md section 6: iterative solvers stall on bending, check true
+residuals). With the exact Hessian an indefinite Newton matrix makes CG break down
+(``KSP_DIVERGED_INDEFINITE_MAT``) or return a non-descent direction: the solve then falls back
+to the direct factorisation (when enabled), which reports the inertia, and the shell Newton
+moves on to a shifted Hessian.
+
+Measured (tests/test_multigrid.py, Gauss-Newton Hessian of a 7 %-compressed plate, 6 x 6
+coarse grid): CG to true residual 1e-8 in 15 / 20 / 21 iterations at 625 / 2401 / 9409
+vertices (2 / 3 / 4 levels; Jacobi-CG: 470 / 883 / 1284), i.e. a mild growth (iterations ~
+n^0.12), not level-independent: linear prolongation is not H^2-accurate for the bending part.
+benchmarks/iterative.py (shared, contended machine, process CPU time per Newton iteration):
+40k vertices direct 2.19 s, multigrid 1.33 s (same gradient history to 3.4e-6), 160k
+multigrid 6.3 s (31 CG iterations per solve), multigrid + Eisenstat-Walker 2.4 s.
+
+Inexact Newton: with ``forcing = "eisenstat_walker"`` the CG tolerance of Newton iteration k is
+Eisenstat & Walker's choice 2 (SIAM J. Sci. Comput. 17, 1996, eq. 2.6 with the safeguard of
+sec. 3), ``eta_k = gamma (||g_k|| / ||g_{k-1}||)^alpha``, bounded below by
+``max(rtol, gamma eta_{k-1}^alpha)`` when that exceeds 0.1 and above by ``eta_max``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+import scipy.sparse as sp
+
+from models.backend import PETSc
+from models.embedding.subdivision import Subdivision, SubdivisionOptions, subdivide
+from models.errors import InputError
+from solvers.linear import FactorReport
+
+FORCING: tuple[str, ...] = ("fixed", "eisenstat_walker")
+CYCLES: tuple[str, ...] = ("v", "w")
+SMOOTHER_PCS: tuple[str, ...] = ("jacobi", "sor")
+
+
+@dataclass(frozen=True)
+class MultigridOptions:
+    """Options of the multigrid-preconditioned CG solve of the Newton system.
+
+    Attributes:
+        rtol: True relative residual ``||b - A x|| / ||b||`` the CG solve must reach (the
+            fixed forcing term; the floor of the Eisenstat-Walker one). Dimensionless.
+        max_iterations: CG iterations before the solve counts as failed.
+        forcing: "fixed" (``rtol`` every Newton iteration) or "eisenstat_walker" (inexact
+            Newton, choice 2).
+        ew_gamma: Eisenstat-Walker gamma in (0, 1].
+        ew_alpha: Eisenstat-Walker exponent alpha in (1, 2].
+        ew_max: Largest forcing term eta_max in (0, 1).
+        smoother_degree: Chebyshev smoothing steps per level, before and after the coarse
+            correction (>= 1).
+        smoother_pc: Preconditioner of the Chebyshev smoother: "jacobi" (diagonal of the
+            full level operator, penalty included) or "sor" (symmetric SOR sweeps on the
+            assembled ``A_l`` alone, the penalty ``G_l^T G_l`` left to Chebyshev). Measured on
+            the 9409-vertex plate of tests/test_multigrid.py (CPU time, shared machine):
+            Jacobi degree 2: 21 CG its, 0.16 s; SOR degree 2: 15 its, 0.23 s.
+        cycle: "v" or "w" cycle.
+        residual_slack: A solve is accepted when the true relative residual is at most
+            ``residual_slack`` times the requested tolerance (>= 1; the recursive CG residual
+            drifts from the true one by round-off).
+        fallback: On CG failure (no convergence, breakdown, true residual too large) solve
+            with the direct factorisation instead (counted in ``KrylovStats.fallbacks``);
+            False returns NaN, which the Newton treats as a failed direction.
+
+    """
+
+    rtol: float = 1e-8
+    max_iterations: int = 300
+    forcing: str = "fixed"
+    ew_gamma: float = 0.9
+    ew_alpha: float = 0.5 * (1.0 + np.sqrt(5.0))
+    ew_max: float = 0.1
+    smoother_degree: int = 2
+    smoother_pc: str = "jacobi"
+    cycle: str = "v"
+    residual_slack: float = 10.0
+    fallback: bool = True
+
+    def __post_init__(self) -> None:
+        if self.forcing not in FORCING:
+            raise InputError(f"MultigridOptions.forcing: expected one of {list(FORCING)}, got "
+                             f"{self.forcing!r}")
+        if self.smoother_pc not in SMOOTHER_PCS:
+            raise InputError(f"MultigridOptions.smoother_pc: expected one of "
+                             f"{list(SMOOTHER_PCS)}, got {self.smoother_pc!r}")
+        if self.cycle not in CYCLES:
+            raise InputError(f"MultigridOptions.cycle: expected one of {list(CYCLES)}, got "
+                             f"{self.cycle!r}")
+        _check_open(self.rtol, 0.0, 1.0, "rtol")
+        _check_open(self.ew_max, 0.0, 1.0, "ew_max")
+        _check_open(self.ew_gamma, 0.0, 1.0 + 1e-15, "ew_gamma")
+        _check_open(self.ew_alpha, 1.0, 2.0 + 1e-15, "ew_alpha")
+        for name in ("max_iterations", "smoother_degree"):
+            if getattr(self, name) < 1:
+                raise InputError(f"MultigridOptions.{name}: must be >= 1, got "
+                                 f"{getattr(self, name)!r}")
+        if not self.residual_slack >= 1:
+            raise InputError(f"MultigridOptions.residual_slack: must be >= 1, got "
+                             f"{self.residual_slack!r}")
+
+
+def _check_open(value: float, low: float, high: float, name: str) -> None:
+    """InputError naming ``MultigridOptions.name`` unless ``low < value < high``."""
+    if not (np.isfinite(value) and low < value < high):
+        raise InputError(f"MultigridOptions.{name}: must be in ({low:g}, {high:g}), got "
+                         f"{value!r}")
+
+
+@dataclass(frozen=True)
+class ShellHierarchy:
+    """A shell obtained by subdividing a coarse mesh, with the matrices kept for multigrid.
+
+    Attributes:
+        subdivision: The :class:`~models.embedding.subdivision.Subdivision` (fine vertices and
+            faces, per-level matrices ``S_l`` of shape ``(n_{l+1}, n_l)``).
+
+    """
+
+    subdivision: Subdivision
+
+    @classmethod
+    def build(cls, points: np.ndarray, faces: np.ndarray, levels: int,
+              scheme: str = "linear") -> ShellHierarchy:
+        """Subdivide ``(points, faces)`` ``levels`` times (``scheme`` "linear" or "loop")."""
+        opts = SubdivisionOptions(levels=levels, scheme=scheme)  # type: ignore[arg-type]
+        return cls(subdivide(points, faces, opts))
+
+    @property
+    def vertices(self) -> np.ndarray:
+        """Fine (shell) vertices ``(n_L, 3)``."""
+        return self.subdivision.vertices
+
+    @property
+    def faces(self) -> np.ndarray:
+        """Fine (shell) faces ``(m_L, 3)``."""
+        return self.subdivision.faces
+
+    @property
+    def levels(self) -> int:
+        """Number of subdivision levels L (the multigrid has L + 1 levels)."""
+        return len(self.subdivision.matrices)
+
+    @property
+    def level_sizes(self) -> tuple[int, ...]:
+        """Vertices per level, coarse to fine."""
+        return (self.subdivision.n_coarse, *(s.shape[0] for s in self.subdivision.matrices))
+
+    def prolongations(self) -> tuple[sp.csr_matrix, ...]:
+        """``P_l = S_l (x) I_3`` (``3 n_{l+1} x 3 n_l``), coarse to fine."""
+        return tuple(vector_prolongation(s) for s in self.subdivision.matrices)
+
+
+def vector_prolongation(s: sp.spmatrix) -> sp.csr_matrix:
+    """``S (x) I_3``: the vertex matrix S acting on each coordinate of dof ``3 i + k``."""
+    return sp.kron(sp.csr_matrix(s), sp.identity(3), format="csr")
+
+
+def eisenstat_walker(grad_norm: float, previous_norm: float, previous_eta: float,
+                     options: MultigridOptions) -> float:
+    """Return the forcing term eta_k of Eisenstat & Walker's choice 2, safeguarded.
+
+    Args:
+        grad_norm: ``||g_k||``.
+        previous_norm: ``||g_{k-1}||`` (0 for the first iteration, which gets ``ew_max``).
+        previous_eta: ``eta_{k-1}``.
+        options: gamma, alpha, eta_max and the floor ``rtol``.
+
+    """
+    if previous_norm <= 0:
+        return options.ew_max
+    gamma, alpha = options.ew_gamma, options.ew_alpha
+    eta = gamma * (grad_norm / previous_norm) ** alpha
+    guard = gamma * previous_eta ** alpha
+    if guard > 0.1:
+        eta = max(eta, guard)
+    return float(min(options.ew_max, max(eta, options.rtol)))
+
+
+class _LowRankOperator:
+    """``MatPython`` context of ``A + G^T G`` (A a PETSc AIJ, G a constant scipy CSR)."""
+
+    def __init__(self, a: Any, g: sp.csr_matrix) -> None:
+        self.a, self.g, self.gt = a, g, g.T.tocsr()
+        self.g_diagonal = np.asarray(g.multiply(g).sum(axis=0)).ravel()
+
+    def mult(self, mat: Any, x: Any, y: Any) -> None:  # noqa: ARG002 (petsc4py signature)
+        """``y = A x + G^T (G x)``."""
+        self.a.mult(x, y)
+        y.getArray()[:] += self.gt @ (self.g @ x.getArray(readonly=True))
+
+    def getDiagonal(self, mat: Any, d: Any) -> None:  # noqa: N802, ARG002 (petsc4py names)
+        """``d = diag(A) + colsum(G .* G)``."""
+        self.a.getDiagonal(d)
+        d.getArray()[:] += self.g_diagonal
+
+
+def _python_operator(a: Any, g: sp.csr_matrix) -> Any:
+    """Wrap ``A + G^T G`` as a matrix-free ``MatPython``."""
+    n = a.getSize()[0]
+    mat: Any = PETSc.Mat().createPython((n, n), _LowRankOperator(a, g), comm=PETSc.COMM_SELF)
+    mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+    mat.setUp()
+    return mat
+
+
+def _aij(csr: sp.csr_matrix) -> Any:
+    """Copy a scipy CSR matrix into a PETSc sequential AIJ."""
+    c = sp.csr_matrix(csr)
+    c.sort_indices()
+    return PETSc.Mat().createAIJ(
+        c.shape, csr=(c.indptr.astype(PETSc.IntType), c.indices.astype(PETSc.IntType),
+                      c.data.astype(PETSc.ScalarType)), comm=PETSc.COMM_SELF)
+
+
+def _scipy_of(mat: Any) -> sp.csr_matrix:
+    """Copy a PETSc AIJ matrix into scipy CSR."""
+    indptr, indices, data = mat.getValuesCSR()
+    return sp.csr_matrix((data, indices, indptr), shape=mat.getSize())
+
+
+class FineMatrix:
+    """The fine Newton matrix ``A + tau I`` as a PETSc AIJ wrapping a fixed CSR pattern.
+
+    Args:
+        pattern: The Hessian's CSR pattern (all later matrices share it, diagonal included).
+
+    """
+
+    def __init__(self, pattern: sp.csr_matrix) -> None:
+        self.indptr = pattern.indptr.astype(PETSc.IntType)
+        self.indices = pattern.indices.astype(PETSc.IntType)
+        self.values = np.zeros(pattern.nnz, dtype=PETSc.ScalarType)
+        rows = np.repeat(np.arange(pattern.shape[0]), np.diff(pattern.indptr))
+        self.diagonal = np.flatnonzero(rows == pattern.indices)
+        if self.diagonal.size != pattern.shape[0]:
+            raise InputError("MultigridLinearSystem: the Hessian pattern must contain the "
+                             "diagonal")
+        mat: Any = PETSc.Mat()
+        mat.createAIJWithArrays(
+            pattern.shape, (self.indptr, self.indices, self.values), comm=PETSc.COMM_SELF)
+        mat.assemble()
+        self.mat = mat
+
+    def update(self, data: np.ndarray, tau: float) -> None:
+        """Copy new values (``+ tau`` on the diagonal); the pattern is unchanged."""
+        np.copyto(self.values, data)
+        if tau:
+            self.values[self.diagonal] += tau
+        self.mat.stateIncrease()
+
+
+@dataclass
+class KrylovStats:
+    """Counts and wall times of a :class:`MultigridLinearSystem` (seconds).
+
+    Attributes:
+        setups: Preconditioner set-ups (Galerkin products + smoother + coarse factorisation).
+        setup_time: Seconds in set-ups.
+        solves: CG solves.
+        solve_time: Seconds in CG solves (true-residual check and fallbacks included).
+        iterations: CG iterations of every solve.
+        true_residuals: True relative residual of every accepted CG solution.
+        fallbacks: Solves handed to the direct solver.
+        fallback_time: Seconds of that in the direct factorisation and solve.
+
+    """
+
+    setups: int = 0
+    setup_time: float = 0.0
+    solves: int = 0
+    solve_time: float = 0.0
+    iterations: list[int] = field(default_factory=list)
+    true_residuals: list[float] = field(default_factory=list)
+    fallbacks: int = 0
+    fallback_time: float = 0.0
+
+
+class NewtonSystem(Protocol):
+    """A Newton-system solver (``solvers.shell_newton._LinearSystem`` or multigrid)."""
+
+    def factorize(self, ev: Any, tau: float) -> FactorReport:
+        """Factorise ``A + tau I`` of an evaluation."""
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """Solve with the last factorisation."""
+
+    def times(self) -> tuple[float, float, float]:
+        """Accumulated (factorise, analysis, solve) seconds."""
+
+
+class MultigridLinearSystem:
+    """CG + geometric multigrid (PETSc PCMG) for ``(A + tau I + G^T G) dx = b``.
+
+    Same interface as the direct Newton-system solver (``factorize(ev, tau)``, ``solve(b)``,
+    ``times()``): ``factorize`` sets the preconditioner up (no factorisation of the fine
+    matrix), ``solve`` runs CG to the current forcing term and checks the true residual.
+
+    Args:
+        prolongations: ``P_l`` coarse to fine, ``P_l`` of shape ``(3 n_{l+1}, 3 n_l)``, the
+            last one ending at the shell's dofs (:meth:`ShellHierarchy.prolongations`).
+        options: Krylov / multigrid options.
+        fallback: Direct solver used when CG fails (None: no fallback).
+
+    """
+
+    def __init__(self, prolongations: tuple[sp.csr_matrix, ...], options: MultigridOptions,
+                 fallback: NewtonSystem | None = None) -> None:
+        if not prolongations:
+            raise InputError("MultigridLinearSystem: the hierarchy needs >= 1 subdivision "
+                             "level")
+        for fine, coarse in zip(prolongations[1:], prolongations[:-1], strict=True):
+            if fine.shape[1] != coarse.shape[0]:
+                raise InputError("MultigridLinearSystem: prolongation shapes do not chain")
+        self.p_scipy = tuple(sp.csr_matrix(p) for p in prolongations)
+        self.p_mats = [_aij(p) for p in self.p_scipy]
+        self.options, self.fallback = options, fallback
+        self.n = self.p_scipy[-1].shape[0]
+        self.stats = KrylovStats()
+        self.eta = options.rtol
+        self._grad_history: tuple[float, float] = (0.0, options.ew_max)
+        self._fine: FineMatrix | None = None
+        self._galerkin: list[Any] = []
+        self._g_source: sp.csr_matrix | None = None
+        self._g_levels: list[sp.csr_matrix | None] = []
+        self._operators: list[Any] = []
+        self._coarse: Any = None
+        self._coarse_pattern: sp.csr_matrix | None = None
+        self._ksp: Any = None
+        self._current: tuple[Any, float] | None = None
+
+    # ----------------------------------------------------------------------------- set-up
+
+    def factorize(self, ev: Any, tau: float) -> FactorReport:
+        """Set the preconditioner up for ``ev.hess + tau I (+ G^T G)``; always "succeeds"."""
+        start = time.perf_counter()
+        if ev.hess is None:
+            raise InputError("energy.evaluate(order=2) returned no Hessian")
+        hess = sp.csr_matrix(ev.hess)
+        if hess.shape != (self.n, self.n):
+            raise InputError(f"MultigridLinearSystem: Hessian of shape {hess.shape}, the "
+                             f"hierarchy ends at {self.n} dofs")
+        if self._fine is None:
+            self._fine = FineMatrix(hess)
+        self._fine.update(hess.data, tau)
+        self._set_penalty(ev.penalty_factor)
+        self._galerkin_products()
+        self._update_coarse()
+        if self._ksp is None:
+            self._ksp = self._create_ksp()
+        for op in self._operators:
+            op.stateIncrease()
+        self._ksp.setUp()
+        self._current = (ev, tau)
+        elapsed = time.perf_counter() - start
+        self.stats.setups += 1
+        self.stats.setup_time += elapsed
+        return FactorReport(success=True, numeric_time=elapsed, shift=float(tau))
+
+    def _set_penalty(self, g: sp.csr_matrix | None) -> None:
+        """Build the constant chain ``G_l = G_{l+1} P_l`` (again only if G changes)."""
+        if g is self._g_source and self._g_levels:
+            return
+        self._g_source = g
+        chain: list[sp.csr_matrix | None] = [None if g is None else sp.csr_matrix(g)]
+        for p in reversed(self.p_scipy):
+            chain.append(None if chain[-1] is None else (chain[-1] @ p).tocsr())
+        self._g_levels = chain[::-1]
+        self._coarse_pattern = None
+        self._ksp = None  # the level operators change: rebuilt by _update_coarse/_create_ksp
+
+    def _galerkin_products(self) -> None:
+        """``A_l = P_l^T A_{l+1} P_l`` from the finest down (symbolic product reused)."""
+        assert self._fine is not None  # set by factorize (internal invariant)
+        fine = self._fine.mat
+        if not self._galerkin:
+            mats = [fine]
+            for p in reversed(self.p_mats):
+                mats.append(mats[-1].PtAP(p))
+            self._galerkin = mats[::-1]
+            return
+        for level in range(len(self.p_mats) - 1, -1, -1):
+            self._galerkin[level + 1].PtAP(self.p_mats[level], result=self._galerkin[level])
+
+    def _update_coarse(self) -> None:
+        """Assemble ``A_0 + G_0^T G_0`` into the coarse matrix of fixed pattern."""
+        a0 = _scipy_of(self._galerkin[0])
+        g0 = self._g_levels[0]
+        total = a0 if g0 is None else (a0 + (g0.T @ g0)).tocsr()
+        total.sort_indices()
+        if self._coarse is None or self._coarse_pattern is None \
+                or total.nnz != self._coarse_pattern.nnz:
+            self._coarse_pattern = total
+            self._coarse = _aij(total)
+            self._ksp = None
+            return
+        self._coarse.setValuesCSR(total.indptr.astype(PETSc.IntType),
+                                  total.indices.astype(PETSc.IntType), total.data)
+        self._coarse.assemble()
+
+    def _level_operators(self) -> list[Any]:
+        """Per level (coarse to fine): ``A_l`` or the matrix-free ``A_l + G_l^T G_l``."""
+        ops: list[Any] = [self._coarse]
+        for level in range(1, len(self._galerkin)):
+            g = self._g_levels[level]
+            a = self._galerkin[level]
+            ops.append(a if g is None else _python_operator(a, g))
+        return ops
+
+    def _smoother_matrix(self, level: int, op: Any) -> Any:
+        """Matrix the level smoother's PC reads: ``op``, or the AIJ ``A_l`` for SOR."""
+        if self.options.smoother_pc == "sor" and level > 0:
+            return self._galerkin[level]
+        return op
+
+    def _create_ksp(self) -> Any:
+        """CG (unpreconditioned norm) + PCMG: Chebyshev/Jacobi levels, MUMPS coarse."""
+        self._operators = self._level_operators()
+        ksp: Any = PETSc.KSP().create(PETSc.COMM_SELF)
+        prefix = f"wrinkles_mg{id(self)}_"
+        ksp.setOptionsPrefix(prefix)
+        ksp.setType("cg")
+        ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+        pc: Any = ksp.getPC()
+        pc.setType("mg")
+        pc.setMGLevels(len(self._operators))
+        pc.setMGType(PETSc.PC.MGType.MULTIPLICATIVE)
+        pc.setMGCycleType(PETSc.PC.MGCycleType.V if self.options.cycle == "v"
+                          else PETSc.PC.MGCycleType.W)
+        for level, p in enumerate(self.p_mats, start=1):
+            pc.setMGInterpolation(level, p)
+        for level, op in enumerate(self._operators):
+            pc.getMGSmoother(level).setOperators(op, self._smoother_matrix(level, op))
+        ksp.setOperators(self._operators[-1])
+        # the level smoothers read the options database during the first PCSetUp only
+        values = _pcmg_options(self.options.smoother_degree, self.options.smoother_pc)
+        db = PETSc.Options()
+        for key, value in values.items():
+            db.setValue(prefix + key, value)
+        try:
+            ksp.setFromOptions()
+            ksp.setUp()
+        finally:
+            for key in values:
+                db.delValue(prefix + key)
+        return ksp
+
+    # ----------------------------------------------------------------------------- solve
+
+    def reset_forcing(self) -> None:
+        """Start a new Newton solve: the next forcing term is ``ew_max`` (no history)."""
+        self._grad_history = (0.0, self.options.ew_max)
+
+    def set_gradient_norm(self, grad_norm: float) -> None:
+        """Choose the CG tolerance of this Newton iteration from ``||g_k||`` (forcing term)."""
+        if self.options.forcing == "fixed":
+            self.eta = self.options.rtol
+            return
+        previous_norm, previous_eta = self._grad_history
+        self.eta = eisenstat_walker(grad_norm, previous_norm, previous_eta, self.options)
+        self._grad_history = (grad_norm, self.eta)
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """Return ``(A + tau I + G^T G) x`` of the current system (scipy; true residuals)."""
+        assert self._current is not None  # factorize() ran first (internal invariant)
+        ev, tau = self._current
+        out = ev.hess @ x + tau * x
+        if ev.penalty_factor is not None:
+            out += ev.penalty_factor.T @ (ev.penalty_factor @ x)
+        return np.asarray(out)
+
+    def true_residual(self, x: np.ndarray, rhs: np.ndarray) -> float:
+        """``||b - A x|| / ||b||`` of the current system."""
+        norm_b = float(np.linalg.norm(rhs)) or 1.0
+        return float(np.linalg.norm(rhs - self.apply(x))) / norm_b
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """CG to the forcing term; fallback to the direct solve on failure (see options)."""
+        start = time.perf_counter()
+        try:
+            x, its, reason = self._cg(rhs)
+            self.stats.iterations.append(its)
+            residual = self.true_residual(x, rhs) if reason > 0 else np.inf
+            if reason > 0 and residual <= self.options.residual_slack * self.eta:
+                self.stats.true_residuals.append(residual)
+                return x
+            return self._fallback(rhs)
+        finally:
+            self.stats.solves += 1
+            self.stats.solve_time += time.perf_counter() - start
+
+    def _cg(self, rhs: np.ndarray) -> tuple[np.ndarray, int, int]:
+        """``(x, iterations, converged reason)`` of one CG solve from x = 0."""
+        b, x = self._operators[-1].createVecs()
+        b.setArray(np.ascontiguousarray(rhs, dtype=np.float64))
+        x.set(0.0)
+        self._ksp.setTolerances(rtol=self.eta, atol=0.0, max_it=self.options.max_iterations)
+        self._ksp.solve(b, x)
+        out = x.getArray().copy()
+        for vec in (b, x):
+            vec.destroy()
+        return out, int(self._ksp.getIterationNumber()), int(self._ksp.getConvergedReason())
+
+    def _fallback(self, rhs: np.ndarray) -> np.ndarray:
+        """Direct solve of the current system, or NaN (a failed direction) without fallback."""
+        if self.fallback is None or not self.options.fallback or self._current is None:
+            return np.full(self.n, np.nan)
+        start = time.perf_counter()
+        ev, tau = self._current
+        report = self.fallback.factorize(ev, tau)
+        self.stats.fallbacks += 1
+        out = self.fallback.solve(rhs) if report.usable_spd else np.full(self.n, np.nan)
+        self.stats.fallback_time += time.perf_counter() - start
+        return out
+
+    def times(self) -> tuple[float, float, float]:
+        """Return (set-up, analysis, CG solve) seconds, the direct fallback's included."""
+        direct = self.fallback.times() if self.fallback is not None else (0.0, 0.0, 0.0)
+        return (self.stats.setup_time + direct[0], direct[1],
+                self.stats.solve_time - self.stats.fallback_time + direct[2])
+
+
+def _pcmg_options(degree: int, smoother_pc: str) -> dict[str, str]:
+    """PETSc options (below the solver's prefix) of the level smoothers and the coarse solve."""
+    return {
+        "mg_levels_ksp_type": "chebyshev",
+        "mg_levels_ksp_max_it": str(degree),
+        "mg_levels_ksp_chebyshev_esteig": "0,0.1,0,1.1",
+        "mg_levels_pc_type": smoother_pc,
+        "mg_coarse_ksp_type": "preonly",
+        "mg_coarse_pc_type": "cholesky",
+        "mg_coarse_pc_factor_mat_solver_type": "mumps",
+    }

@@ -1,0 +1,117 @@
+"""Quality presets (``quality = "preview" | "balanced" | "final"``): overlay and precedence."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from models.errors import InputError
+from solvers.shell_newton import ShellNewtonOptions
+from wrinkles.presets import PRESET_NOTES, PRESETS, apply_quality, preset_keys
+from wrinkles.scene import Scene, load_scene, scene_dict
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT = REPO / "scenes" / "default.toml"
+
+BODY_ONLY = """
+[mesh]
+builder = "box"
+params = { lx = 0.2, ly = 0.05, lz = 0.05, h = 0.05 }
+"""
+
+
+def lookup(doc: dict[str, Any], key: str) -> Any:
+    """Value of a dotted key in a nested dict."""
+    for part in key.split("."):
+        doc = doc[part]
+    return doc
+
+
+def scene_with(tmp_path: Path, header: str, body: str | None = None) -> Path:
+    """The default scene (or ``body``) with ``header`` lines prepended at the top level."""
+    path = tmp_path / "scene.toml"
+    path.write_text(header + "\n" + (body if body is not None else DEFAULT.read_text()))
+    return path
+
+
+def levels_of(scene: Scene) -> int:
+    """Subdivision levels of a scene with a shell."""
+    assert scene.shell is not None
+    return scene.shell.subdivision.levels
+
+
+def without(text: str, *prefixes: str) -> str:
+    """Scene text without the lines starting with ``prefixes`` (to let the preset decide)."""
+    return "\n".join(line for line in text.splitlines()
+                     if not line.lstrip().startswith(prefixes))
+
+
+@pytest.mark.parametrize("quality", sorted(PRESETS))
+def test_preset_resolves_to_its_documented_keys(tmp_path, quality):
+    body = without(DEFAULT.read_text(), "levels", "rtol = 1e-6", "max_iterations", "degree")
+    resolved = scene_dict(load_scene(scene_with(tmp_path, f'quality = "{quality}"', body)))
+    for key, value in PRESETS[quality].items():
+        assert lookup(resolved, key) == value, key
+    assert PRESET_NOTES[quality]  # every preset documents its measurement
+
+
+def test_presets_differ_and_order_by_resolution():
+    levels = [PRESETS[q]["shell.subdivision.levels"] for q in ("preview", "balanced", "final")]
+    rtols = [PRESETS[q]["shell.newton.rtol"] for q in ("preview", "balanced", "final")]
+    assert levels == sorted(levels) and len(set(levels)) == 3
+    assert rtols == sorted(rtols, reverse=True)
+
+
+def test_explicit_scene_keys_win_over_the_preset(tmp_path):
+    # default.toml writes levels = 2, rtol = 1e-6 and body degree = 1 explicitly
+    scene = load_scene(scene_with(tmp_path, 'quality = "final"'))
+    assert scene.shell is not None
+    assert scene.shell.subdivision.levels == 2 and scene.body.degree == 1
+    assert scene.shell.newton.rtol == 1e-6
+    # a key the file leaves out comes from the preset (the dataclass default is another)
+    body = without(DEFAULT.read_text(), "max_iterations")
+    shell = load_scene(scene_with(tmp_path, 'quality = "final"', body)).shell
+    assert shell is not None and shell.subdivision.levels == 2
+    assert shell.newton.max_iterations == PRESETS["final"]["shell.newton.max_iterations"]
+    assert shell.newton.max_iterations != ShellNewtonOptions().max_iterations
+
+
+def test_set_wins_over_file_and_preset_and_selects_the_preset(tmp_path):
+    body = without(DEFAULT.read_text(), "levels")
+    path = scene_with(tmp_path, 'quality = "final"', body)
+    assert levels_of(load_scene(path)) == PRESETS["final"]["shell.subdivision.levels"]
+    scene = load_scene(path, ["shell.subdivision.levels=0", "shell.newton.rtol=0.5"])
+    assert scene.shell is not None
+    assert scene.shell.subdivision.levels == 0 and scene.shell.newton.rtol == 0.5
+    plain = scene_with(tmp_path, "", body)
+    assert levels_of(load_scene(plain, ["quality=preview"])) == PRESETS["preview"][
+        "shell.subdivision.levels"]
+
+
+def test_no_quality_leaves_the_scene_unchanged(tmp_path):
+    assert scene_dict(load_scene(scene_with(tmp_path, ""))) == scene_dict(load_scene(DEFAULT))
+
+
+def test_preset_never_switches_physics_on(tmp_path):
+    scene = load_scene(scene_with(tmp_path, 'quality = "final"', BODY_ONLY))
+    assert scene.shell is None
+
+
+@pytest.mark.parametrize("bad", ['"fast"', "3", '"Final"'])
+def test_unknown_quality_is_an_input_error_naming_the_key(tmp_path, bad):
+    with pytest.raises(InputError) as info:
+        load_scene(scene_with(tmp_path, f"quality = {bad}"))
+    message = str(info.value)
+    assert message.startswith("scene.toml: quality:") and "'balanced'" in message
+
+
+def test_apply_quality_reports_the_keys_it_set():
+    doc: dict[str, Any] = {"shell": {"newton": {"rtol": 1e-2}}, "quality": "balanced"}
+    applied = apply_quality(doc)
+    assert "quality" not in doc
+    assert "shell.newton.rtol" not in applied and doc["shell"]["newton"]["rtol"] == 1e-2
+    assert set(applied) == set(preset_keys("balanced")) - {"shell.newton.rtol"}
+    assert doc["shell"]["subdivision"]["levels"] == PRESETS["balanced"][
+        "shell.subdivision.levels"]

@@ -29,10 +29,23 @@ def lookup(doc: dict[str, Any], key: str) -> Any:
     return doc
 
 
+def explicit_default() -> str:
+    """``scenes/default.toml`` without its ``quality`` line, the balanced keys written out."""
+    text = "\n".join(line for line in DEFAULT.read_text().splitlines()
+                     if not line.startswith("quality")) + "\n"
+    for table, keys in (("[body]", "degree = 1"), ("[shell.subdivision]", "levels = 2"),
+                        ("[shell.coupling]", None)):
+        assert table in text, table
+        if keys is not None:
+            text = text.replace(f"{table}\n", f"{table}\n{keys}\n", 1)
+    return text.replace("[shell.coupling]", "[shell.newton]\nrtol = 1e-6\nmax_iterations = 300"
+                        "\n\n[shell.coupling]", 1)
+
+
 def scene_with(tmp_path: Path, header: str, body: str | None = None) -> Path:
-    """The default scene (or ``body``) with ``header`` lines prepended at the top level."""
+    """The explicit default scene (or ``body``) with ``header`` lines prepended at the top."""
     path = tmp_path / "scene.toml"
-    path.write_text(header + "\n" + (body if body is not None else DEFAULT.read_text()))
+    path.write_text(header + "\n" + (body if body is not None else explicit_default()))
     return path
 
 
@@ -50,7 +63,7 @@ def without(text: str, *prefixes: str) -> str:
 
 @pytest.mark.parametrize("quality", sorted(PRESETS))
 def test_preset_resolves_to_its_documented_keys(tmp_path, quality):
-    body = without(DEFAULT.read_text(), "levels", "rtol = 1e-6", "max_iterations", "degree")
+    body = without(explicit_default(), "levels", "rtol = 1e-6", "max_iterations", "degree")
     resolved = scene_dict(load_scene(scene_with(tmp_path, f'quality = "{quality}"', body)))
     for key, value in PRESETS[quality].items():
         assert lookup(resolved, key) == value, key
@@ -65,13 +78,13 @@ def test_presets_differ_and_order_by_resolution():
 
 
 def test_explicit_scene_keys_win_over_the_preset(tmp_path):
-    # default.toml writes levels = 2, rtol = 1e-6 and body degree = 1 explicitly
+    # the explicit default writes levels = 2, rtol = 1e-6 and body degree = 1
     scene = load_scene(scene_with(tmp_path, 'quality = "final"'))
     assert scene.shell is not None
     assert scene.shell.subdivision.levels == 2 and scene.body.degree == 1
     assert scene.shell.newton.rtol == 1e-6
     # a key the file leaves out comes from the preset (the dataclass default is another)
-    body = without(DEFAULT.read_text(), "max_iterations")
+    body = without(explicit_default(), "max_iterations")
     shell = load_scene(scene_with(tmp_path, 'quality = "final"', body)).shell
     assert shell is not None and shell.subdivision.levels == 2
     assert shell.newton.max_iterations == PRESETS["final"]["shell.newton.max_iterations"]
@@ -79,7 +92,7 @@ def test_explicit_scene_keys_win_over_the_preset(tmp_path):
 
 
 def test_set_wins_over_file_and_preset_and_selects_the_preset(tmp_path):
-    body = without(DEFAULT.read_text(), "levels")
+    body = without(explicit_default(), "levels")
     path = scene_with(tmp_path, 'quality = "final"', body)
     assert levels_of(load_scene(path)) == PRESETS["final"]["shell.subdivision.levels"]
     scene = load_scene(path, ["shell.subdivision.levels=0", "shell.newton.rtol=0.5"])
@@ -115,3 +128,10 @@ def test_apply_quality_reports_the_keys_it_set():
     assert set(applied) == set(preset_keys("balanced")) - {"shell.newton.rtol"}
     assert doc["shell"]["subdivision"]["levels"] == PRESETS["balanced"][
         "shell.subdivision.levels"]
+
+
+def test_default_scene_is_the_balanced_preset(tmp_path):
+    """scenes/default.toml selects ``balanced``: it resolves exactly like the keys written out."""
+    assert 'quality = "balanced"' in DEFAULT.read_text()
+    explicit = scene_with(tmp_path, "")
+    assert scene_dict(load_scene(DEFAULT)) == scene_dict(load_scene(explicit))

@@ -4,8 +4,8 @@
 [--no-run] [--build DIR]``
 (``make paper``, with ``PAPER_ARGS``):
 
-1. runs our scripts ``paper/scripts/{convergence,shell_limits,taylor,scenes}.py --build DIR
-   [--quick]`` one after the other (each writes ``DIR/data/<name>.json`` and figures);
+1. runs our scripts ``paper/scripts/{convergence,shell_limits,taylor,scenes,ball_sofa}.py
+   --build DIR [--quick]`` one after the other (each writes ``DIR/data/<name>.json`` and figures);
    ``--reuse`` keeps a JSON that exists from a run in the same mode; the full mode also runs
    ``paper/scripts/{wavelength,artefacts}.py`` when present (``--run-external``: in quick mode
    too; ``--no-external``: never);
@@ -39,7 +39,8 @@ from typing import Any
 PAPER = Path(__file__).resolve().parent
 REPO = PAPER.parent
 TEMPLATE = PAPER / "paper.md.in"
-OWN_SCRIPTS: tuple[str, ...] = ("convergence", "shell_limits", "taylor", "scenes")
+OWN_SCRIPTS: tuple[str, ...] = ("convergence", "shell_limits", "taylor", "scenes",
+                                 "ball_sofa")
 EXTERNAL_SCRIPTS: tuple[str, ...] = ("wavelength", "artefacts")
 PLACEHOLDER = re.compile(r"\{\{\s*([^{}:]+?)\s*(?::([^{}]*))?\}\}")
 
@@ -351,6 +352,19 @@ FIGURES: dict[str, tuple[str, str]] = {
 }
 
 
+def ball_sofa_blocks(ball: dict[str, Any], build: Path) -> dict[str, str]:
+    """Figures of the ball on the sofa: the time plot, and the shell render (full mode only)."""
+    plot = figure(build, "figures/ball_sofa.png", "Rigid ball on the sofa: centre height, "
+                  "vertical velocity and contact force against time.")
+    render = ball.get("render")
+    if render is None:
+        return {"figure_ball_sofa": plot, "figure_scene_ball_sofa": "*Shell render not made "
+                "in quick mode (`python paper/scripts/ball_sofa.py` makes it).*\n"}
+    return {"figure_ball_sofa": plot, "figure_scene_ball_sofa": figure(
+        build, render, "Ball on sofa: the shell at the frame of deepest penetration (the "
+        "ball is not drawn), coloured by log10 of the bending energy density.")}
+
+
 def own_blocks(data: dict[str, Any], build: Path) -> dict[str, str]:
     """Tables and figures of our scripts."""
     scenes = data["scenes"]
@@ -361,6 +375,7 @@ def own_blocks(data: dict[str, Any], build: Path) -> dict[str, str]:
         "table_scenes": lambda: scene_table(scenes),
     }
     blocks = {k: f() for k, f in captions.items()}
+    blocks.update(ball_sofa_blocks(data["ball_sofa"], build))
     for name, what in SCENE_CAPTIONS.items():
         blocks[f"figure_{name}"] = figure(build, scenes[name]["figure"], f"{what} Last frame, "
                                           "coloured by log10 of the bending energy density.")

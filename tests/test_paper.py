@@ -22,7 +22,8 @@ SECTIONS = ("1 Introduction", "2 Related Work", "3 Method Overview", "4.1 Elasti
             "4.2 Shell", "4.3 Constraint with Local Support", "5 Acceleration via Cluster",
             "6.1 Interpolation", "6.2 SQP", "6.3 Modules", "7.1 Scenes",
             "7.2 Wrinkle Wavelength", "7.3 Element-Boundary Artefacts",
-            "7.4 Speed and Accuracy", "8 Discussion", "9 Conclusion", "10 Reference")
+            "7.4 Speed and Accuracy", "7.5 Ball on sofa (the draft's experiment)",
+            "8 Discussion", "9 Conclusion", "10 Reference")
 
 
 def make_paper(*args: str, timeout: float = 900) -> subprocess.CompletedProcess[str]:
@@ -60,7 +61,7 @@ def test_every_figure_listed_exists_and_is_a_png(build):
     figures = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
     own = {"figures/body_convergence.png", "figures/torsion.png", "figures/shell_limits.png",
            "figures/taylor.png", "figures/scene_default.png", "figures/scene_bent_bar.png",
-           "figures/scene_twisted_cylinder.png"}
+           "figures/scene_twisted_cylinder.png", "figures/ball_sofa.png"}
     assert own <= set(figures)
     for rel in figures:
         data = (build / rel).read_bytes()
@@ -94,6 +95,25 @@ def test_tables_written_from_json(build):
     assert scenes["meta"]["quick"] is True
     assert scenes["bent_bar"]["amplitude_ratio"] > 2.0  # same bound as test_scenes_extra
     assert abs(scenes["twisted_cylinder"]["end_angle_error"]) < 1e-10
+
+
+def test_ball_sofa_numbers_match_its_run(build):
+    """data/ball_sofa.json against the run's summary.json and tests/test_ball_sofa.py's bounds.
+
+    Quick mode: scenes/ball_sofa_coarse.toml, 10 frames, one subdivision level, no render.
+    """
+    ball = json.loads((build / "data" / "ball_sofa.json").read_text())
+    frames = json.loads((build / "runs" / "ball_sofa" / "summary.json").read_text())["frames"]
+    assert ball["meta"]["quick"] is True and ball["frames"] == len(frames) == 10
+    assert ball["series"]["vz"] == [f["details"]["balls"][0]["velocity"][2] for f in frames]
+    assert ball["impact_frame"] == 3  # as test_ball_sofa (measured: frame 3, 1.294 m/s)
+    assert 0.3 < ball["restitution"] < 1.0  # measured 0.615 (0.796 / 1.294 m/s)
+    assert 0.005 < ball["max_penetration_rel"] < 0.02  # measured 0.0137
+    assert ball["momentum_residual_rel"] < 1e-6  # measured 2.1e-11 of 13.5 N s
+    assert 2 <= ball["max_rigid_iterations"] <= 8  # measured 4
+    assert ball["contact_force_peak"] > ball["weight"]  # measured 303 N against 49 N
+    assert "render" not in ball  # quick mode renders nothing
+    assert "not made in quick mode" in (build / "paper.md").read_text()
 
 
 def test_missing_source_names_the_script(tmp_path):

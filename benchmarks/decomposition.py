@@ -33,6 +33,7 @@ computed from the numbers, and writes ``benchmarks/results/decomposition_<size>.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import resource
 import time
@@ -82,6 +83,9 @@ def _args() -> argparse.Namespace:
     parser.add_argument("--assembled-max", type=int, default=12_000,
                         help="largest size run with the assembled-penalty distributed solve")
     parser.add_argument("--max-outer", type=int, default=400)
+    parser.add_argument("--split-icntl", nargs="*", default=[], metavar="I=V",
+                        help="extra MUMPS ICNTL for a second split row, e.g. 28=2 29=2 "
+                             "(parallel ordering); the default split row always runs")
     parser.add_argument("--out-dir", type=Path, default=RESULTS)
     return parser.parse_args()
 
@@ -185,18 +189,28 @@ class Frame:
                 "time": ref["time"], "speedup": 1.0, "peak_mb": _peak_mb(self.comm)}
 
 
-def _split(frame: Frame) -> dict[str, Any]:
+def _icntl(pairs: list[str]) -> tuple[tuple[int, int], ...]:
+    """``["28=2", "29=2"]`` -> ``((28, 2), (29, 2))``."""
+    return tuple((int(a), int(b)) for a, b in (p.split("=") for p in pairs))
+
+
+def _split(frame: Frame, icntl: tuple[tuple[int, int], ...] = ()) -> dict[str, Any]:
     """Split monolithic Newton over all ranks (setup included in the time)."""
+    newton = _newton(frame.g0)
+    if icntl:
+        linear = dataclasses.replace(newton.augmented_linear, mumps_icntl=icntl)
+        newton = dataclasses.replace(newton, augmented_linear=linear)
+    label = "" if not icntl else ", ICNTL " + " ".join(f"{i}={v}" for i, v in icntl)
+
     def run() -> tuple[np.ndarray, Any, Any, float]:
         start = time.perf_counter()
-        solver = SplitNewtonSolver(frame.problem, frame.partition, _newton(frame.g0),
-                                   frame.comm)
+        solver = SplitNewtonSolver(frame.problem, frame.partition, newton, frame.comm)
         setup = time.perf_counter() - start
         x, rep = solver.minimize(frame.x0)
         return x, rep, solver.info(), setup
 
     (x, rep, info, setup), seconds = _timed(frame.comm, run)
-    return frame.row("split monolithic (MUMPS LDL^T)", x, seconds, ranks=frame.comm.size,
+    return frame.row(f"split monolithic (MUMPS LDL^T{label})", x, seconds, ranks=frame.comm.size,
                      outer=rep.iterations, converged=rep.converged, time_setup=setup,
                      factorizations=rep.factorizations, time_evaluate=rep.time_evaluate,
                      time_factorize=rep.time_factorize, time_analysis=rep.time_analysis,
@@ -237,6 +251,8 @@ def _block(frame: Frame, method: str, exchange: str, n_patches: int, max_outer: 
 def _main_rows(frame: Frame, args: argparse.Namespace) -> list[dict]:
     """Reference, split, assembled (small sizes), block methods x exchanges."""
     rows = [frame.reference_row(), _split(frame)]
+    if args.split_icntl:
+        rows.append(_split(frame, _icntl(args.split_icntl)))
     if frame.vertices <= args.assembled_max:
         rows.append(_assembled(frame))
     for method in args.block:

@@ -428,14 +428,7 @@ class _PetscBackend:
         """PCSetUp; time the phases from PETSc's log events; read MUMPS / inertia info."""
         pc = self.ksp.getPC()
         (sym0, nsym0), _ = self._event_totals()
-        start = time.perf_counter()
-        reason = "ok"
-        try:
-            pc.setUp()
-            failed = int(pc.getFailedReason())
-        except PETSc.Error as err:
-            failed, reason = -1, f"PETSc error {getattr(err, 'ierr', err)}"
-        total = time.perf_counter() - start
+        failed, reason, total = setup_pc(pc)
         (sym1, nsym1), _ = self._event_totals()
         self.factorizations += 1
         analysis = sym1 - sym0
@@ -562,6 +555,22 @@ class SolverStats:
     solves: int = 0
     solve_time: float = 0.0
     history: list[FactorReport] = field(default_factory=list)
+
+
+def setup_pc(pc: Any) -> tuple[int, str, float]:
+    """``PCSetUp`` (factorise) timed: ``(failed, reason, seconds)``.
+
+    ``failed`` is PETSc's PCFailedReason (0 = ok), or -1 when PETSc raised (``reason`` then
+    names the error code).
+    """
+    start = time.perf_counter()
+    reason = "ok"
+    try:
+        pc.setUp()
+        failed = int(pc.getFailedReason())
+    except PETSc.Error as err:
+        failed, reason = -1, f"PETSc error {getattr(err, 'ierr', err)}"
+    return failed, reason, time.perf_counter() - start
 
 
 class SparseDirectSolver:

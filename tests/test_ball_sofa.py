@@ -87,9 +87,9 @@ def test_momentum_balance_impulse_on_ball_equals_sofa_plus_ground(ten_frames):
     for f in frames:
         m = {k: np.array(v) for k, v in f["details"]["momentum"].items()}
         np.testing.assert_allclose(m["ball_impulse"] + m["body_impulse"], 0.0, rtol=0,
-                                   atol=1e-6 * scale)  # measured < 3e-10 N s
+                                   atol=1e-9 * scale)  # measured < 3e-10 N s (issue: 1e-6)
         np.testing.assert_allclose(m["body_impulse"], m["contact_impulse"], rtol=0,
-                                   atol=1e-6 * scale)
+                                   atol=1e-9 * scale)
     ground = np.array(frames[-1]["details"]["momentum"]["ground_impulse"])
     assert ground[2] > 1.0  # the floor carries the sofa (and the ball): measured 64.5 N s
     assert np.abs(ground[:2]).max() > 0.05  # the pins hold it sideways: measured 0.18 N s
@@ -99,7 +99,7 @@ def test_coupling_iterates_only_in_contact(ten_frames):
     frames = frames_of(ten_frames[1])
     its = [f["details"]["rigid_iterations"] for f in frames]
     assert all(k == 1 for step in its[:2] for k in step)
-    assert all(2 <= k <= 8 for step in its[3:] for k in step)  # measured 3-4 body solves
+    assert all(2 <= k <= 5 for step in its[3:] for k in step)  # measured 3-4 body solves
     tol = 1e-8 * 0.15
     assert all(f["details"]["rigid_mismatch"] <= tol for f in frames)
 

@@ -42,6 +42,7 @@ import numpy as np
 import pytest
 
 from meshes.structured import structured_box
+from meshes.tetmesh import max_edge_lengths, tet_volumes
 from meshes.validate import validate
 from models.backend import MPI, mesh_from_arrays
 from models.body import Body, BodyOptions, PinSpec
@@ -290,10 +291,7 @@ def test_body_hit_by_sphere_at_10_m_per_s():
 
 def quality(points: np.ndarray, tets: np.ndarray) -> float:
     """Smallest signed ``6 V / l_max^3`` over the tets (the validator's shape measure)."""
-    d = points[tets[:, 1:]] - points[tets[:, :1]]
-    vol = np.einsum("ij,ij->i", np.cross(d[:, 0], d[:, 1]), d[:, 2])
-    edges = points[tets[:, [0, 0, 0, 1, 1, 2]]] - points[tets[:, [1, 2, 3, 2, 3, 3]]]
-    return float(np.min(vol / np.linalg.norm(edges, axis=2).max(axis=1) ** 3))
+    return float(np.min(6.0 * tet_volumes(points, tets) / max_edge_lengths(points, tets) ** 3))
 
 
 def sliver_points(flatness: float) -> np.ndarray:
@@ -484,7 +482,7 @@ def test_shell_near_degenerate_triangles(flatness):
 
 SLIVER_ENERGY: dict[tuple[float, str], float] = {}
 """Converged W of each accepted sliver case, to cross-check the two Hessian strategies."""
-SLIVER_BOUND = {"exact": 90, "mixed": 40}
+SLIVER_BOUND = {"exact": 70, "mixed": 30}
 """Newton iterations allowed per strategy (measured max 62 exact at q = 0.023, 26 mixed at
 q = 2.3e-3)."""
 
@@ -540,7 +538,7 @@ def test_shell_sliver_exact_hessian_limit():
     row, x = sliver_solve(1e-3, "exact")
     assert np.all(np.isfinite(x)) and 0.0 < row["min_s"]
     assert row["worst_energy_increase"] <= 1e-12, row
-    assert row["energy"] < 4.0 or row["outcome"] == "converged"
+    assert 0.86 < row["energy"] < 2.5  # measured 2.114 (minimum 0.8645; no barrier 40.08)
     row["note"] = "exact Hessian: use far_hessian='projected' for slivers of q ~ 1e-3"
 
 
@@ -562,7 +560,7 @@ def test_shell_sliver_without_flip_barrier_stagnates():
                  "backtracks": report.line_search_steps, "energy": report.energy,
                  "grad_norm": report.grad_norm, "min_s": float(s.min()),
                  "message": str(err).splitlines()[0]})
-    assert report.reason == "stagnation" and report.iterations <= 70  # measured 39 .. 41
+    assert report.reason == "stagnation" and report.iterations <= 50  # measured 39 .. 41
     assert "face 26 [88, 90, 4]" in str(err) and "vertex 4" in str(err)
     assert np.all(np.isfinite(err.x)) and report.grad_norm > 1e3 * report.tolerance
     assert abs(s[26]) < 1e-6 and report.energy > 10.0  # collapsed sliver, stuck far above W*

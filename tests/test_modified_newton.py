@@ -54,8 +54,6 @@ def test_same_minimiser_fewer_factorisations(newton) -> None:
         assert rn.converged and rm.converged
         assert gap < 1e-8
         assert rm.energy == pytest.approx(rn.energy, rel=1e-12)
-        assert rm.factorizations == sum(it.factorizations for it in rm.history)
-        assert rm.reused_iterations == sum(1 for it in rm.history if it.factorizations == 0)
     warm = modified[1:]  # warm-started frames: the factorisation also crosses frames
     # measured: 10 its with 3-4 factorisations per warm frame (Newton: 4-5 its, 4-5 fact.)
     assert all(r.factorizations < r.iterations for _, r in warm)

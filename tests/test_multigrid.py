@@ -6,13 +6,11 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
+import shellcases
 
 from meshes.shells import grid_plate, icosphere
-from models.embedding.clusters import ClusterOptions, build_clusters
 from models.errors import InputError
-from models.shell.energy import ShellEnergy, ShellParams
-from models.shell.rest import RestState
-from models.shell.topology import ShellTopology
+from models.shell.energy import ShellEnergy
 from solvers.linear import AugmentedPenaltySolver
 from solvers.multigrid import (
     MultigridLinearSystem,
@@ -25,17 +23,7 @@ from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver, ShellSol
 
 def compressed_plate(hierarchy: ShellHierarchy, clusters: int) -> tuple[ShellEnergy, np.ndarray]:
     """Plate of the hierarchy, low-rank penalty to its 7 %-compressed self, noisy start."""
-    pts, faces = hierarchy.vertices, hierarchy.faces
-    topo = ShellTopology.from_faces(faces, len(pts))
-    h = build_clusters(pts, faces, ClusterOptions(count=clusters)).H
-    params = ShellParams(k_L=1e3, k_B=1e-1, k_P=1e3, penalty_hessian="low_rank")
-    energy = ShellEnergy(topo, RestState.from_positions(topo, pts), params, H=h)
-    y = pts.copy()
-    y[:, 0] = 0.5 + 0.93 * (pts[:, 0] - 0.5)
-    energy.set_target(y)
-    x0 = y.copy()
-    x0[:, 2] += 1e-4 * np.random.default_rng(1).standard_normal(len(y))
-    return energy, x0
+    return shellcases.compressed_plate(hierarchy.vertices, hierarchy.faces, clusters)
 
 
 @pytest.mark.parametrize("scheme", ["linear", "loop"])

@@ -4,13 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import shellcases
 
 import solvers.linear as linear
 from meshes.shells import grid_plate
-from models.embedding.clusters import ClusterOptions, build_clusters
-from models.shell.energy import ShellEnergy, ShellParams
-from models.shell.rest import RestState
-from models.shell.topology import ShellTopology
+from models.shell.energy import ShellEnergy
 from solvers.linear import ShiftOptions, shift_candidates
 from solvers.shell_newton import ShellNewtonOptions, ShellSolveReport, minimize
 
@@ -25,16 +23,7 @@ def session1_candidates(diagonal_scale: float, shift: ShiftOptions, start: float
 def wrinkle_case() -> tuple[ShellEnergy, np.ndarray]:
     """The session-1 case: 20x20 plate, 20 clusters, 7 % compression, exact Hessian."""
     pts, faces = grid_plate(20, 20, 1.0, 1.0)
-    topo = ShellTopology.from_faces(faces, len(pts))
-    clusters = build_clusters(pts, faces, ClusterOptions(count=20))
-    params = ShellParams(k_L=1e3, k_B=1e-1, k_P=1e3, penalty_hessian="low_rank")
-    energy = ShellEnergy(topo, RestState.from_positions(topo, pts), params, H=clusters.H)
-    y = pts.copy()
-    y[:, 0] = 0.5 + 0.93 * (pts[:, 0] - 0.5)
-    energy.set_target(y)
-    x0 = y.copy()
-    x0[:, 2] += 1e-4 * np.random.default_rng(1).standard_normal(len(y))
-    return energy, x0
+    return shellcases.compressed_plate(pts, faces, clusters=20)
 
 
 def solve(energy: ShellEnergy, x0: np.ndarray) -> tuple[np.ndarray, ShellSolveReport]:

@@ -165,9 +165,9 @@ def step_file(path: Path, index: int) -> Path:
     return steps_dir(path) / f"step_{index:06d}.h5"
 
 
-def count_steps(path: Path) -> int:
-    """Count the time steps listed in the XDMF file ``path`` (0 when it has none)."""
-    return sum(1 for c in ET.parse(path).getroot().iter("Grid") for _ in c.findall("Grid"))
+def count_steps(root: ET.Element) -> int:
+    """Count the time steps (grids inside grid collections) of a parsed XDMF root element."""
+    return sum(1 for c in root.iter("Grid") for _ in c.findall("Grid"))
 
 
 def commit_step(path: Path, work: Path, atomic: bool = True) -> None:
@@ -177,11 +177,10 @@ def commit_step(path: Path, work: Path, atomic: bool = True) -> None:
     by a dropped step of that index is replaced) by ``os.replace``; only then the step's
     grids, their data items re-pointed at that file, are merged into ``path``'s XML.
     """
-    index = count_steps(path)
-    dest = step_file(path, index)
+    tree, new = ET.parse(path), ET.parse(work)
+    dest = step_file(path, count_steps(tree.getroot()))
     dest.parent.mkdir(parents=True, exist_ok=True)
     os.replace(work.with_suffix(".h5"), dest)
-    tree, new = ET.parse(path), ET.parse(work)
     domain, relative = tree.getroot().find("Domain"), dest.relative_to(path.parent).as_posix()
     if domain is None:
         raise InputError(f"{path}: XDMF file without a Domain")

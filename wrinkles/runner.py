@@ -300,7 +300,7 @@ def attach_shell(run: Run, state: BodyState | None) -> None:
     assert options is not None  # only called for scenes with a [shell] table
     shell = build_shell(run.body, options, run.scene.material)
     if state is not None:
-        restore_shell(shell, checkpoint_shell(state))
+        restore_shell(shell, checkpoint_stage(state, "shell"))
         if options.coupling.mode == "two_way":
             apply_force(shell, run.body)
     every, last = run.scene.output.every, run.n_frames
@@ -317,11 +317,6 @@ def attach_shell(run: Run, state: BodyState | None) -> None:
         run.stages.append(("shell", one_way_stage(shell, run.body, write)))
     run.shell = shell
     run.facts["shell"] = shell.facts
-
-
-def checkpoint_shell(state: BodyState) -> dict[str, np.ndarray]:
-    """Return the shell arrays of a checkpoint; InputError if it has none."""
-    return checkpoint_stage(state, "shell")
 
 
 def checkpoint_stage(state: BodyState, stage: str) -> dict[str, np.ndarray]:

@@ -439,7 +439,9 @@ def apply_force(shell: Shell, body: Body) -> None:
 def feed_back(shell: Shell, body: Body) -> None:
     """Relax the penalty force of the current shell into the body's nodal load ``B^T f``."""
     omega = shell.options.coupling.relaxation
-    f = penalty_force(shell.clusters.H, shell.params.k_P, shell.x, shell.y)
+    op = shell.energy.penalty_operator  # built once (None when k_P = 0: then H, zero force)
+    f = penalty_force(op if op is not None else shell.clusters.H, shell.params.k_P, shell.x,
+                      shell.y)
     shell.force = (1.0 - omega) * shell.force + omega * f
     apply_force(shell, body)
 

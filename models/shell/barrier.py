@@ -59,6 +59,7 @@ from models.shell.assembly import (
     project_psd_blocks,
 )
 from models.shell.membrane import _skew_entry
+from models.shell.rest import face_normals, squared_edges
 
 
 def check_activation(s_hat: float, name: str = "flip_activation") -> None:
@@ -129,12 +130,6 @@ def _flip_kernel(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, weight
                             + cc * sgn * _skew_entry(r0, r1, r2, p, q))
 
 
-def face_normals(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unnormalised face normals ``(x_1 - x_0) x (x_2 - x_0)`` (F, 3) (twice the area vector)."""
-    p0 = x[faces[:, 0]]
-    return np.cross(x[faces[:, 1]] - p0, x[faces[:, 2]] - p0)
-
-
 def signed_area_ratio(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray,
                       ref: np.ndarray) -> np.ndarray:
     """``s_f = n_f . r_f / (2 A0_f)`` per face (1 at rest; <= 0 collapsed or turned over)."""
@@ -163,8 +158,7 @@ def barrier_weights(x_rest: np.ndarray, faces: np.ndarray) -> np.ndarray:
     the rest quality of :func:`models.shell.rest.face_quality`): a sliver is held as firmly as
     a regular face of its size instead of by its own vanishing area.
     """
-    p = x_rest[faces]
-    return np.sqrt(3.0) / 12.0 * np.sum((p - np.roll(p, 1, axis=1)) ** 2, axis=(1, 2))
+    return np.sqrt(3.0) / 12.0 * squared_edges(x_rest, faces).sum(axis=1)
 
 
 def flip_barrier(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, weight: np.ndarray,
@@ -187,7 +181,8 @@ def flip_barrier(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, weight
 
     Returns:
         TermEval with per-face energies in ``element_values``; the value is +inf (and that
-        face's gradient and Hessian are zero) when some ``s_f <= 0``.
+        face's gradient and Hessian are zero) when some ``s_f <= 0``. ``blocks`` is None when
+        no face is below the activation (all blocks would be zero).
 
     """
     check_order(order)
@@ -204,5 +199,6 @@ def flip_barrier(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, weight
         sub = np.ascontiguousarray(blocks[active])
         project_psd_blocks(sub)  # only active faces: the other blocks are zero
         blocks[active] = sub
+    # no face below the activation: every block is zero, so none is handed to the assembly
     return TermEval(value=float(vals.sum()), grad=grad if order >= 1 else None,
-                    blocks=blocks if order >= 2 else None, element_values=vals)
+                    blocks=blocks if order >= 2 and active.size else None, element_values=vals)

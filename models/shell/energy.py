@@ -206,6 +206,11 @@ class ShellEnergy:
         """G = sqrt(2 k_P) (H kron I3) in "low_rank" mode (constant), else None."""
         return self._factor
 
+    @property
+    def penalty_operator(self) -> PenaltyOperator | None:
+        """The cluster matrix as a :class:`PenaltyOperator` (built once), None when k_P = 0."""
+        return self._penalty
+
     def penalty_gram(self) -> sp.csr_matrix | None:
         """Vertex-level H^T H (n, n), or None when the penalty is off."""
         return penalty_gram(self._penalty) if self._penalty is not None else None
@@ -306,7 +311,7 @@ class ShellEnergy:
         ``data`` already holds the constant penalty part and the blocks of the fused terms.
         """
         contributions = [(self._maps[name], evals[name].blocks) for name in self._maps
-                         if evals[name].blocks is not None and _any_active(name, evals[name])]
+                         if evals[name].blocks is not None]
         return assemble(self.pattern, contributions, out=data)  # type: ignore[arg-type]
 
     def bending_density(self, x: np.ndarray) -> np.ndarray:
@@ -320,11 +325,6 @@ class ShellEnergy:
         areas = np.where(self.rest.vertex_areas > 0, self.rest.vertex_areas, 1.0)
         return bending_energy_density(xc, self.topology.hinges, self.rest.rest_angles,
                                       self._bend_weights, areas)
-
-
-def _any_active(name: str, ev: TermEval) -> bool:
-    """Return False only for a flip barrier with no face below its activation (zero blocks)."""
-    return name != "flip_barrier" or ev.element_values is None or bool(np.any(ev.element_values))
 
 
 def flip_faces(topology: ShellTopology, rest: RestState, flip_quality: float) -> np.ndarray:

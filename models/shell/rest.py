@@ -114,13 +114,18 @@ class RestState:
                    hinge_weights=hinge_weights(x, topology.hinges), vertex_areas=vertex_areas)
 
 
+def face_normals(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unnormalised face normals ``(x_1 - x_0) x (x_2 - x_0)`` (F, 3) (twice the area vector)."""
+    p0 = x[faces[:, 0]]
+    return np.cross(x[faces[:, 1]] - p0, x[faces[:, 2]] - p0)
+
+
 def face_areas(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Triangle areas ``|(x_1 - x_0) x (x_2 - x_0)| / 2`` (vectorised)."""
-    p0 = x[faces[:, 0]]
-    return 0.5 * np.linalg.norm(np.cross(x[faces[:, 1]] - p0, x[faces[:, 2]] - p0), axis=1)
+    return 0.5 * np.linalg.norm(face_normals(x, faces), axis=1)
 
 
-def _squared_edges(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def squared_edges(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(F, 3) squared edge lengths of every face."""
     p = x[faces]
     return np.sum((p - np.roll(p, 1, axis=1)) ** 2, axis=2)
@@ -131,7 +136,7 @@ def face_quality(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
     q = 1 for an equilateral triangle and q -> 0 for a sliver (q ~ A / l^2 when A << l^2).
     """
-    return 4.0 * np.sqrt(3.0) * face_areas(x, faces) / np.sum(_squared_edges(x, faces), axis=1)
+    return 4.0 * np.sqrt(3.0) * face_areas(x, faces) / np.sum(squared_edges(x, faces), axis=1)
 
 
 def _check_quality(x: np.ndarray, faces: np.ndarray, min_quality: float) -> None:
@@ -148,7 +153,7 @@ def _check_quality(x: np.ndarray, faces: np.ndarray, min_quality: float) -> None
 
 def _check_degenerate(x: np.ndarray, faces: np.ndarray, areas: np.ndarray) -> None:
     """Raise InputError naming the first face with (numerically) zero rest area."""
-    longest2 = np.max(_squared_edges(x, faces), axis=1)
+    longest2 = np.max(squared_edges(x, faces), axis=1)
     bad = np.flatnonzero(~(areas > DEGENERATE_AREA_RATIO * longest2))
     if bad.size:
         f = bad[0]

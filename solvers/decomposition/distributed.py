@@ -29,7 +29,7 @@ import scipy.sparse as sp
 
 from models.backend import MPI, PETSc
 from models.errors import InputError
-from solvers.linear import FactorReport, LinearSolverOptions
+from solvers.linear import FactorReport, LinearSolverOptions, setup_pc
 from solvers.shell_newton import (
     EnergyEval,
     ShellEnergyLike,
@@ -105,15 +105,9 @@ class DistributedLinearSystem:
         values = np.array(ev.hess.data[self._slice], dtype=PETSc.ScalarType)
         values[self._diag] += tau
         self.mat.setValuesCOO(values)
-        start = time.perf_counter()
         first = self._times[0] == 0.0
         pc = self.ksp.getPC()
-        try:
-            pc.setUp()
-            failed = int(pc.getFailedReason())
-        except PETSc.Error:
-            failed = -1
-        elapsed = time.perf_counter() - start
+        failed, _, elapsed = setup_pc(pc)
         self._times[0] += elapsed
         self._times[1] += elapsed if first else 0.0
         report = self._report(pc, failed, tau, elapsed)

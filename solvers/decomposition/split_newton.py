@@ -41,11 +41,12 @@ import scipy.sparse as sp
 
 from models.backend import MPI, PETSc, begin_petsc_log
 from models.errors import InputError
+from models.shell.dofs import stencil_dofs
 from models.shell.energy import ShellEval
 from models.shell.penalty import PenaltyOperator, penalty_factor
 from solvers.decomposition.patch_energy import PatchEnergy, ShellProblem
 from solvers.decomposition.patches import merge_partition
-from solvers.linear import FactorReport, LinearSolverOptions, set_mumps_controls
+from solvers.linear import FactorReport, LinearSolverOptions, set_mumps_controls, setup_pc
 from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver, ShellSolveReport
 
 _SYMBOLIC_EVENTS = {"lu": "MatLUFactorSym", "cholesky": "MatCholFctrSym",
@@ -160,7 +161,9 @@ class SplitShellEnergy:
         counts = np.bincount(layout.vertex_rank, minlength=comm.size)
         self._counts3 = 3 * counts
         self._displs3 = np.concatenate([[0], np.cumsum(self._counts3)[:-1]])
-        self._dof_order = (3 * layout.vertex_order[:, None] + np.arange(3)).reshape(-1)
+        self._dof_order = stencil_dofs(layout.vertex_order[:, None]).reshape(-1)
+        self.owned_dofs = stencil_dofs(self.patch.interior[:, None]).reshape(-1)
+        """Global dofs of this rank's vertices, vertex-major (the order of its rows)."""
 
     @property
     def n_vertices(self) -> int:
@@ -257,8 +260,7 @@ def _coo_pattern(energy: SplitShellEnergy, hess_rows: sp.csr_matrix,
     diag = np.flatnonzero(rows == cols)
     if g is None:
         return _Coo(rows, cols, rows.size, np.zeros(0), diag)
-    owned_dofs = (3 * patch.interior[:, None] + np.arange(3)).reshape(-1)
-    p_rows, p_cols, p_vals = _penalty_entries(layout, g, owned_dofs, energy.comm.rank)
+    p_rows, p_cols, p_vals = _penalty_entries(layout, g, energy.owned_dofs, energy.comm.rank)
     return _Coo(np.concatenate([rows, p_rows]), np.concatenate([cols, p_cols]), rows.size,
                 p_vals, diag)
 
@@ -344,13 +346,7 @@ class SplitAugmentedSystem:
     def _factor(self, tau: float) -> FactorReport:
         """PCSetUp (numeric, symbolic the first time); MUMPS INFOG(1) / INFOG(12)."""
         pc, before = self.ksp.getPC(), self._symbolic_count()
-        start = time.perf_counter()
-        try:
-            pc.setUp()
-            failed = int(pc.getFailedReason())
-        except PETSc.Error:
-            failed = -1
-        elapsed = time.perf_counter() - start
+        failed, _, elapsed = setup_pc(pc)
         self.analyses += self._symbolic_count() - before
         first = self._times[0] == 0.0
         self._times[0] += elapsed
@@ -379,7 +375,7 @@ class SplitAugmentedSystem:
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """``dx`` (3n,) on every rank from the full right-hand side ``rhs`` (3n,)."""
         start = time.perf_counter()
-        owned = (3 * self.energy.patch.interior[:, None] + np.arange(3)).reshape(-1)
+        owned = self.energy.owned_dofs
         local = np.zeros(self.rhs.getLocalSize())
         local[: owned.size] = rhs[owned]
         self.rhs.setArray(local)

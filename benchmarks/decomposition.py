@@ -25,9 +25,18 @@ global relative gradient tolerance 1e-8. For each size it measures
   term eta, inexact inner solves of at most 2 Newton steps).
 
 Per row: outer (Newton) iterations, final energy gap to the monolithic optimum, max vertex
-difference (relative to the plate width), wall time (slowest rank), speedup over the serial
-monolithic solve, peak resident memory of the ranks. Prints a table, a plain-language verdict
-computed from the numbers, and writes ``benchmarks/results/decomposition_<size>.json``.
+difference (relative to the plate width), final gradient reduction ``||g|| / ||g_0||`` (of the
+row's final state), wall time (slowest rank), speedup over the serial monolithic solve, peak
+resident memory of the ranks. Prints a table, a plain-language verdict computed from the
+numbers, and writes ``benchmarks/results/decomposition_<size>.json`` (``--out-dir``).
+
+Block runs can be capped in wall time (``--block-seconds``, ``--study-seconds``:
+``BlockOptions.max_seconds``, the outer loop only; the patch set-up is not capped). A capped
+run stops unconverged (``stopped_by = "max_seconds"``); its row then carries the fitted
+per-outer-iteration rate of ``||g||`` over the last half of its history and the outer
+iterations and time that rate would need to reach the tolerance (``extrapolated_outer``,
+``extrapolated_time``: an extrapolation, not a measurement; see
+:func:`solvers.decomposition.block.extrapolate_outer`).
 """
 
 from __future__ import annotations
@@ -35,6 +44,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import resource
 import time
 from collections.abc import Callable
@@ -46,7 +56,7 @@ import numpy as np
 
 from models.backend import MPI
 from models.shell.energy import ShellParams
-from solvers.decomposition.block import BlockOptions
+from solvers.decomposition.block import BlockOptions, BlockReport, extrapolate_outer
 from solvers.decomposition.demo import FrameCase, PlateCase, plate_frame, prepare_wrinkled
 from solvers.decomposition.distributed import distributed_minimize
 from solvers.decomposition.parallel import ParallelOptions, parallel_block_solve
@@ -83,6 +93,11 @@ def _args() -> argparse.Namespace:
     parser.add_argument("--assembled-max", type=int, default=12_000,
                         help="largest size run with the assembled-penalty distributed solve")
     parser.add_argument("--max-outer", type=int, default=400)
+    parser.add_argument("--block-seconds", type=float, default=float("inf"),
+                        help="wall-time cap (s) of the outer loop of every block run "
+                             "(BlockOptions.max_seconds); default: no cap")
+    parser.add_argument("--study-seconds", type=float, default=None,
+                        help="cap of the block runs of the studies (default: --block-seconds)")
     parser.add_argument("--split-icntl", nargs="*", default=[], metavar="I=V",
                         help="extra MUMPS ICNTL for a second split row, e.g. 28=2 29=2 "
                              "(parallel ordering); the default split row always runs")
@@ -160,7 +175,7 @@ class Frame:
                       time.perf_counter() - start, rep.factorizations)
         x, w, its, ok, seconds, facts = self.comm.bcast(result, root=0)
         return {"x": x, "energy": w, "iterations": its, "converged": ok, "time": seconds,
-                "factorizations": facts}
+                "factorizations": facts, "grad_reduction": _grad_norm(self.problem, x) / self.g0}
 
     @property
     def vertices(self) -> int:
@@ -171,13 +186,14 @@ class Frame:
         """One table row against the monolithic reference (progress printed on rank 0)."""
         w = self.problem.energy().value(x)
         out = {"method": method, "vertices": self.vertices, **extra,
+               "grad_reduction": _grad_norm(self.problem, x) / self.g0,
                "energy_gap": abs(w - self.ref["energy"]) / abs(self.ref["energy"]),
                "max_diff": float(np.abs(x - self.ref["x"]).max() / self.case.plate.width),
                "time": seconds, "speedup": self.ref["time"] / seconds,
                "peak_mb": _peak_mb(self.comm)}
         if self.comm.rank == 0:
             print(f"  {method}: {seconds:.2f} s outer={out.get('outer')} "
-                  f"gap={out['energy_gap']:.1e}", flush=True)
+                  f"g/g0={out['grad_reduction']:.1e} gap={out['energy_gap']:.1e}", flush=True)
         return out
 
     def reference_row(self) -> dict[str, Any]:
@@ -185,7 +201,9 @@ class Frame:
         ref = self.ref
         return {"method": "serial monolithic (rank 0)", "vertices": self.vertices, "ranks": 1,
                 "outer": ref["iterations"], "converged": ref["converged"],
-                "factorizations": ref["factorizations"], "energy_gap": 0.0, "max_diff": 0.0,
+                "stopped_by": "tolerance" if ref["converged"] else "not converged",
+                "factorizations": ref["factorizations"],
+                "grad_reduction": ref["grad_reduction"], "energy_gap": 0.0, "max_diff": 0.0,
                 "time": ref["time"], "speedup": 1.0, "peak_mb": _peak_mb(self.comm)}
 
 
@@ -211,7 +229,9 @@ def _split(frame: Frame, icntl: tuple[tuple[int, int], ...] = ()) -> dict[str, A
 
     (x, rep, info, setup), seconds = _timed(frame.comm, run)
     return frame.row(f"split monolithic (MUMPS LDL^T{label})", x, seconds, ranks=frame.comm.size,
-                     outer=rep.iterations, converged=rep.converged, time_setup=setup,
+                     outer=rep.iterations, converged=rep.converged,
+                     stopped_by="tolerance" if rep.converged else "not converged",
+                     time_setup=setup,
                      factorizations=rep.factorizations, time_evaluate=rep.time_evaluate,
                      time_factorize=rep.time_factorize, time_analysis=rep.time_analysis,
                      symbolic_analyses=info.symbolic_analyses,
@@ -226,26 +246,46 @@ def _assembled(frame: Frame) -> dict[str, Any]:
         energy, frame.x0, _newton(frame.g0), frame.comm))  # type: ignore[arg-type]
     return frame.row("distributed monolithic, assembled H^T H", x, seconds,
                      ranks=frame.comm.size, outer=rep.iterations, converged=rep.converged,
+                     stopped_by="tolerance" if rep.converged else "not converged",
                      factorizations=rep.factorizations, time_factorize=rep.time_factorize)
 
 
-def _block(frame: Frame, method: str, exchange: str, n_patches: int, max_outer: int,
-           label: str = "", **block: Any) -> dict[str, Any]:
-    """Decomposed solve with ``n_patches`` patches over the ranks."""
+def _extrapolation(r: BlockReport, seconds: float) -> dict[str, Any]:
+    """Fitted rate per outer iteration; outer iterations and wall time it would need.
+
+    Time = the row's set-up (wall minus outer loop) + the loop time per outer iteration times
+    the extrapolated outer iterations. Non-finite values are written as None (JSON).
+    """
+    rate, outer = extrapolate_outer(r.grad_history, r.tolerance)
+    loop = r.time_total / max(r.outer_iterations, 1)
+    total = seconds - r.time_total + loop * outer
+    return {k: (float(v) if np.isfinite(v) else None) for k, v in
+            (("fitted_rate", rate), ("extrapolated_outer", outer), ("extrapolated_time", total))}
+
+
+def _block(frame: Frame, method: str, exchange: str, n_patches: int, args: argparse.Namespace,
+           label: str = "", study: bool = False, **block: Any) -> dict[str, Any]:
+    """Decomposed solve with ``n_patches`` patches over the ranks, capped in wall time."""
     comm = frame.comm
+    cap = args.study_seconds if study and args.study_seconds is not None else args.block_seconds
     opts = ParallelOptions(exchange=exchange,  # type: ignore[arg-type]
                            patches_per_rank=max(1, n_patches // comm.size),
                            block=BlockOptions(method=method,  # type: ignore[arg-type]
                                               rtol=RTOL, gradient_scale=frame.g0,
-                                              max_outer=max_outer, **block))
+                                              max_outer=args.max_outer, max_seconds=cap,
+                                              **block))
     res, seconds = _timed(comm, lambda: parallel_block_solve(
         frame.problem, frame.partition, frame.x0, opts, comm))
     r = res.report
+    extra = {} if r.converged else _extrapolation(r, seconds)
     return frame.row(f"block {method} ({exchange}){label}", res.x, seconds, ranks=comm.size,
                      patches=res.patches.n_patches, colours=r.colours, outer=r.outer_iterations,
-                     converged=r.converged, inner=r.inner_iterations,
-                     rejected_mixing=r.rejected_mixing, time_exchange=r.time_exchange,
-                     time_patch_solves=r.time_solve)
+                     converged=r.converged, stopped_by=r.stopped_by,
+                     max_seconds=cap if np.isfinite(cap) else None,
+                     inner=r.inner_iterations, rejected_mixing=r.rejected_mixing,
+                     time_outer_loop=r.time_total, time_exchange=r.time_exchange,
+                     time_patch_solves=r.time_solve, grad_history=list(r.grad_history),
+                     **extra)
 
 
 def _main_rows(frame: Frame, args: argparse.Namespace) -> list[dict]:
@@ -257,13 +297,13 @@ def _main_rows(frame: Frame, args: argparse.Namespace) -> list[dict]:
         rows.append(_assembled(frame))
     for method in args.block:
         for exchange in args.exchanges:
-            rows.append(_block(frame, method, exchange, frame.comm.size, args.max_outer))
+            rows.append(_block(frame, method, exchange, frame.comm.size, args))
     return rows
 
 
 def _patch_study(frame: Frame, args: argparse.Namespace) -> list[dict]:
     """Outer iterations vs. patch count (Gauss-Seidel, neighbour)."""
-    return [_block(frame, "gauss_seidel", "neighbour", p, args.max_outer)
+    return [_block(frame, "gauss_seidel", "neighbour", p, args, study=True)
             | {"study": "patch count"}
             for p in args.patches if p % frame.comm.size == 0 and p != frame.comm.size]
 
@@ -274,8 +314,8 @@ def _options_study(frame: Frame, args: argparse.Namespace) -> list[dict]:
         (", no Anderson", {"anderson": 0}), (", eta 0.01", {"eta": 0.01}),
         (", eta 0.5", {"eta": 0.5}),
         (", inner <= 2 Newton steps", {"inner": ShellNewtonOptions(max_iterations=2)})]
-    return [_block(frame, "gauss_seidel", "neighbour", frame.comm.size, args.max_outer,
-                   label, **opts) | {"study": "block options"} for label, opts in variants]
+    return [_block(frame, "gauss_seidel", "neighbour", frame.comm.size, args, label,
+                   study=True, **opts) | {"study": "block options"} for label, opts in variants]
 
 
 def _stiffness_study(comm: Any, fc: FrameCase, args: argparse.Namespace) -> list[dict]:
@@ -286,14 +326,26 @@ def _stiffness_study(comm: Any, fc: FrameCase, args: argparse.Namespace) -> list
         frame = Frame(comm, replace(fc, plate=replace(fc.plate, params=params)))
         ratio = {"study": "k_B/k_P", "k_B_over_k_P": params.k_B / params.k_P}
         rows += [frame.reference_row() | ratio, _split(frame) | ratio,
-                 _block(frame, "gauss_seidel", "neighbour", comm.size, args.max_outer) | ratio]
+                 _block(frame, "gauss_seidel", "neighbour", comm.size, args, study=True)
+                 | ratio]
     return rows
 
 
+EXTRAPOLATION_NOTE = ("ext.outer / ext.time: outer iterations and wall time to reach the "
+                      "tolerance, extrapolated from the fitted log-linear rate of ||g|| over "
+                      "the last half of an unconverged run (not measured)")
+
+
+def _opt(value: Any, spec: str, width: int = 0) -> str:
+    """Format an optional number ('-' right-aligned to ``width`` when absent)."""
+    return "-".rjust(width) if value is None else format(value, spec)
+
+
 def _table(rows: list[dict]) -> str:
-    """Fixed-width table of the rows."""
+    """Fixed-width table of the rows (and the note on the extrapolated columns)."""
     head = (f"{'method':56s} {'n':>7s} {'r':>2s} {'P':>3s} {'outer':>6s} {'conv':>5s} "
-            f"{'gap':>9s} {'maxdiff':>9s} {'time s':>8s} {'speedup':>7s} {'MB/rank':>8s}  study")
+            f"{'stopped by':>12s} {'g/g0':>8s} {'gap':>9s} {'maxdiff':>9s} {'time s':>8s} "
+            f"{'speedup':>7s} {'ext.outer':>9s} {'ext.time':>9s} {'MB/rank':>8s}  study")
     lines = [head, "-" * len(head)]
     for r in rows:
         study = r.get("study", "")
@@ -301,16 +353,50 @@ def _table(rows: list[dict]) -> str:
             study += f" {r['k_B_over_k_P']:.0e}"
         lines.append(f"{r['method']:56s} {r['vertices']:7d} {r['ranks']:2d} "
                      f"{r.get('patches', '-')!s:>3s} {r['outer']!s:>6s} {r['converged']!s:>5s} "
+                     f"{r.get('stopped_by', '-'):>12s} {_opt(r.get('grad_reduction'), '8.1e', 8)} "
                      f"{r['energy_gap']:9.2e} {r['max_diff']:9.2e} {r['time']:8.2f} "
-                     f"{r['speedup']:7.2f} {max(r['peak_mb']):8.0f}  {study}")
-    return "\n".join(lines)
+                     f"{r['speedup']:7.2f} {_opt(r.get('extrapolated_outer'), '9.0f', 9)} "
+                     f"{_opt(r.get('extrapolated_time'), '9.0f', 9)} {max(r['peak_mb']):8.0f}  "
+                     f"{study}")
+    return "\n".join(lines + [EXTRAPOLATION_NOTE])
+
+
+def how_far(r: dict[str, Any], reference: float) -> str:
+    """'How far it got' of an unconverged block row, with its labelled extrapolation."""
+    text = (f"{r['method']} stopped by {r['stopped_by']} without converging: ||g||/||g_0|| = "
+            f"{r['grad_reduction']:.1e} after {r['outer']} outer iterations in {r['time']:.0f} s")
+    if r.get("extrapolated_outer") is None:
+        rate = r.get("fitted_rate")
+        return text + (" (no decrease to extrapolate from: fitted rate "
+                       f"{rate:.4f} per outer iteration)" if rate is not None else "")
+    return text + (f"; extrapolation from its fitted rate ({r['fitted_rate']:.4f} per outer "
+                   f"iteration over the last half): about {r['extrapolated_outer']:.0f} outer "
+                   f"iterations and {r['extrapolated_time']:.0f} s to reach 1e-8 (extrapolated "
+                   f"speedup {reference / r['extrapolated_time']:.3f}x)")
+
+
+def study_summary(rows: list[dict]) -> str:
+    """One clause per study row: how far it got or its outer iterations."""
+    parts = []
+    for r in (r for r in rows if r.get("study") and r["method"].startswith("block")):
+        what = (f"patch count P={r['patches']}" if r["study"] == "patch count" else
+                f"k_B/k_P={r['k_B_over_k_P']:.0e}" if "k_B_over_k_P" in r else
+                f"{r['study']} " + (r["method"].split(")", 1)[-1].lstrip(", ") or "default"))
+        if r["converged"]:
+            parts.append(f"{what}: converged in {r['outer']} outer iterations")
+        else:
+            ext = _opt(r.get("extrapolated_outer"), ".0f")
+            parts.append(f"{what}: ||g||/||g_0|| = {r['grad_reduction']:.1e} after "
+                         f"{r['outer']} outer iterations (extrapolated total {ext})")
+    return "; ".join(parts)
 
 
 def verdict(rows: list[dict], target: float = 1.6) -> str:
     """Plain-language 'which method wins where' from the main rows of one size.
 
     A method counts only if it converged with the same answer (energy gap <= 1e-8, max
-    vertex difference <= 1e-6 of the width).
+    vertex difference <= 1e-6 of the width). Unconverged block methods say how far they got
+    and, labelled as such, the extrapolated outer iterations and time; the studies follow.
     """
     main = [r for r in rows if "study" not in r]
     same = [r for r in main if r["converged"] and r["energy_gap"] <= 1e-8
@@ -325,13 +411,14 @@ def verdict(rows: list[dict], target: float = 1.6) -> str:
         met = "meets" if top["speedup"] >= target else "misses"
         text += (f"; the best parallel method ({top['method']}) {met} the {target}x target "
                  f"({top['speedup']:.2f}x)")
-    if blocks:
-        fastest = max(blocks, key=lambda r: r["speedup"])
-        text += (f"; the best decomposition ({fastest['method']}) needs {fastest['outer']} "
-                 f"outer iterations against {main[0]['outer']} Newton iterations and runs at "
-                 f"{fastest['speedup']:.2f}x" + ("" if fastest["converged"] else
-                                                  " without converging"))
-    return text
+    for r in blocks:
+        if r["converged"]:
+            text += (f"; {r['method']} converges in {r['outer']} outer iterations against "
+                     f"{main[0]['outer']} Newton iterations, {r['speedup']:.2f}x")
+        else:
+            text += "; " + how_far(r, main[0]["time"])
+    summary = study_summary(rows)
+    return text + (f". Studies (Gauss-Seidel, neighbour): {summary}" if summary else "")
 
 
 def _frame_case(n: int, args: argparse.Namespace) -> FrameCase:
@@ -342,8 +429,17 @@ def _frame_case(n: int, args: argparse.Namespace) -> FrameCase:
     return FrameCase(plate=plate, increment=args.increment, coarse_levels=2)
 
 
-def _write(comm: Any, args: argparse.Namespace, n: int, rows: list[dict]) -> None:
-    """Print the table and verdict; write decomposition_<n>.json (rank 0)."""
+def _cap(seconds: float | None) -> float | None:
+    """A wall-time cap for JSON (None = no cap)."""
+    return seconds if seconds is not None and np.isfinite(seconds) else None
+
+
+def _write(comm: Any, args: argparse.Namespace, n: int, rows: list[dict],
+           load: list[tuple[float, float, float]]) -> None:
+    """Print the table and verdict; write decomposition_<n>.json (rank 0).
+
+    ``load`` is the 1/5/15-minute load average at the start and end of this size's runs.
+    """
     if comm.rank != 0:
         return
     text = verdict(rows)
@@ -351,10 +447,15 @@ def _write(comm: Any, args: argparse.Namespace, n: int, rows: list[dict]) -> Non
     print(frame)
     print(_table(rows))
     print("verdict: " + text)
+    print(f"load average (1/5/15 min) at start {load[0]}, at end {load[1]}")
     args.out_dir.mkdir(parents=True, exist_ok=True)
     out = args.out_dir / f"decomposition_{n}.json"
+    study_cap = args.study_seconds if args.study_seconds is not None else args.block_seconds
     out.write_text(json.dumps({"ranks": comm.size, "sizes": [n], "frame": frame,
-                               "verdict": text, "rows": rows}, indent=1))
+                               "verdict": text, "block_seconds": _cap(args.block_seconds),
+                               "study_seconds": _cap(study_cap),
+                               "extrapolation": EXTRAPOLATION_NOTE, "load_average": load,
+                               "rows": rows}, indent=1))
     print(f"wrote {out}", flush=True)
 
 
@@ -368,6 +469,7 @@ def main() -> None:
         if comm.rank == 0:
             print(f"size {n}: {(fc.plate.cells + 1) ** 2} vertices, {comm.size} rank(s)",
                   flush=True)
+        load = [os.getloadavg()]
         frame = Frame(comm, fc)
         rows = _main_rows(frame, args)
         if k == 0 and "patches" in args.studies:
@@ -376,7 +478,7 @@ def main() -> None:
             rows += _options_study(frame, args)
         if k == 0 and "stiffness" in args.studies:
             rows += _stiffness_study(comm, fc, args)
-        _write(comm, args, (fc.plate.cells + 1) ** 2, rows)
+        _write(comm, args, (fc.plate.cells + 1) ** 2, rows, load + [os.getloadavg()])
 
 
 if __name__ == "__main__":

@@ -411,6 +411,18 @@ class Body:
         """Minimum of ``det F`` over all volume quadrature points (all ranks) [-]."""
         return self._static_solver.min_det_f()
 
+    def det_f_points(self) -> np.ndarray:
+        """``det F = det(I + grad u)`` at the volume quadrature points of each owned cell [-].
+
+        Evaluates the expression behind :meth:`min_det_f` (compiled once, by the static
+        solver). Non-finite values are returned as ``-inf``, never mistaken for an admissible
+        state. Shape ``(owned cells, quadrature points)``.
+        """
+        n_local = self.mesh.topology.index_map(self.mesh.topology.dim).size_local
+        cells = np.arange(n_local, dtype=np.int32)
+        values = self._static_solver._det_f.eval(self.mesh, cells)
+        return np.where(np.isfinite(values), values, -np.inf).reshape(n_local, -1)
+
     def reaction_force(self, index: int = 0) -> np.ndarray:
         """Force exerted by obstacle ``index`` on the body [N] (the obstacle feels minus it).
 
@@ -604,7 +616,11 @@ class Body:
         is inadmissible (``det F <= 0``); a first step uses that directly.
         """
         self._u_n.x.array[:] = self.u.x.array
-        self.u.x.array[:] += h * self._rate
+        self._set_guess(self.u.x.array + h * self._rate)
+
+    def _set_guess(self, guess: np.ndarray) -> None:
+        """Set ``u = guess`` with the pins applied; ``u_n`` (pins applied) if ``det F <= 0``."""
+        self.u.x.array[:] = guess
         self._apply_bcs()
         if self._static_solver.min_det_f() <= 0.0:
             self.u.x.array[:] = self._u_n.x.array
@@ -630,11 +646,7 @@ class Body:
             pred += h * h * (0.5 - beta) * self.a.x.array
         self._u_pred.x.array[:] = pred
         self._inertia.value = 1.0 / (beta * h * h)  # type: ignore[assignment]
-        self.u.x.array[:] = pred
-        self._apply_bcs()
-        if self._static_solver.min_det_f() <= 0.0:
-            self.u.x.array[:] = self._u_n.x.array
-            self._apply_bcs()
+        self._set_guess(pred)
 
     def _update_kinematics(self, h: float) -> None:
         """Set v (and a for Newmark) at the end of the sub-step from the new u."""

@@ -117,8 +117,6 @@ class RigidBallOptions:
         if any(k not in (0, 1, 2) for k in guide) or len(set(guide)) != len(guide):
             raise InputError(f"ball.guide must be distinct values in 0, 1, 2, got {self.guide!r}")
         object.__setattr__(self, "guide", guide)
-        if not (math.isfinite(self.radius) and self.radius > 0.0):
-            raise InputError(f"ball.radius must be > 0, got {self.radius}")
         if (self.mass is None) == (self.density is None):
             raise InputError("ball: give exactly one of 'mass' and 'density'")
         for name in ("mass", "density"):
@@ -130,7 +128,7 @@ class RigidBallOptions:
         if any(self.velocity[k] != 0.0 for k in guide):
             raise InputError(f"ball.velocity must be 0 in the guided components {guide}, got "
                              f"{self.velocity}")
-        self.contact()  # validates stiffness, stiffness_factor, quadrature_degree
+        self.contact()  # validates radius, stiffness, stiffness_factor, quadrature_degree
 
     @property
     def free(self) -> np.ndarray:
@@ -428,8 +426,7 @@ class BallCoupling:
 
     def penetration(self) -> tuple[float, ...]:
         """``max(0, r - dist(c, surface)) / r`` of each ball [-] (collective)."""
-        return tuple(self._surface.penetration(c, r)
-                     for c, r in zip(self.state.center, self.radius, strict=True))
+        return tuple(self._surface.penetration(self.state.center, self.radius).tolist())
 
     # --- the coupled step -----------------------------------------------------------------------
 
@@ -573,12 +570,18 @@ class BoundaryFacets:
         u = self.body.u.x.array.reshape(-1, 3)
         return np.asarray(self.X + u[self.dofs])
 
-    def penetration(self, center: np.ndarray, radius: float) -> float:
-        """Penetration of the sphere as a fraction of ``radius`` (collective) [-]."""
+    def penetration(self, centers: np.ndarray, radii: np.ndarray) -> np.ndarray:
+        """Penetration of each sphere as a fraction of its radius (collective) [-], (N,).
+
+        The deformed triangles are gathered once for all ``N`` spheres (``centers`` (N, 3),
+        ``radii`` (N,)), and one ``MPI.MIN`` reduction gives every distance.
+        """
         tri = self.triangles()
-        local = float(point_triangle_distance(center, tri).min()) if len(tri) else math.inf
-        dist = self.comm.allreduce(local, op=MPI.MIN)
-        return max(0.0, radius - dist) / radius
+        local = np.array([point_triangle_distance(c, tri).min() if len(tri) else math.inf
+                          for c in np.reshape(centers, (-1, 3))])
+        dist = np.empty_like(local)
+        self.comm.Allreduce(local, dist, op=MPI.MIN)
+        return np.asarray(np.maximum(0.0, radii - dist) / radii)
 
 
 def point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> np.ndarray:

@@ -33,6 +33,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from dataclasses import replace as with_fields
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +61,8 @@ class Source:
         command: The command that produces it (printed when it is missing).
         columns: Preferred table columns (dotted paths into nested row dicts); those absent
             from the rows are skipped; empty: the first scalar columns.
+        render: Renderer of the section from ``(source, files)`` instead of one generic
+            table per file (None: generic).
 
     """
 
@@ -68,6 +71,145 @@ class Source:
     pattern: str
     command: str
     columns: tuple[str, ...] = ()
+    render: Callable[[Source, Sequence[Path]], str] | None = None
+
+
+DECOMPOSITION_STUDY_COLUMNS: tuple[str, ...] = (
+    "study", "k_B_over_k_P", "method", "patches", "outer", "converged", "stopped_by",
+    "grad_reduction", "energy_gap", "max_diff", "time", "fitted_rate", "extrapolated_outer",
+    "extrapolated_time")
+
+
+def run_conditions(doc: dict[str, Any]) -> str:
+    """Wall-time caps and machine load of a decomposition run, as far as its JSON has them."""
+    text = ""
+    if doc.get("block_seconds") is not None:
+        text += f" Block runs capped at {doc['block_seconds']:g} s"
+        text += (f" (studies {doc['study_seconds']:g} s)." if doc.get("study_seconds")
+                 not in (None, doc["block_seconds"]) else ".")
+    if doc.get("load_average"):
+        start, end = doc["load_average"][0], doc["load_average"][-1]
+        text += (f" Load average (1/5/15 min) {start[0]:.1f}/{start[1]:.1f}/{start[2]:.1f} at "
+                 f"the start, {end[0]:.1f}/{end[1]:.1f}/{end[2]:.1f} at the end (2 cores; the "
+                 "run's own 2 ranks account for about 2, more means other jobs ran).")
+    return text
+
+
+def decomposition_section(source: Source, files: Sequence[Path]) -> str:
+    """Render the decomposition benchmark: per JSON with a verdict, smallest size first.
+
+    Each ``decomposition_*.json`` of ``benchmarks/decomposition.py`` gives its frame statement,
+    the main table (``source.columns``), the studies table, the verdict and the note on the
+    extrapolated columns (JSON without a verdict, from older versions, are skipped).
+    """
+    docs = [(path, json.loads(path.read_text())) for path in files]
+    docs = [(p, d) for p, d in docs if isinstance(d, dict) and "verdict" in d]
+    parts = []
+    for path, doc in sorted(docs, key=lambda pd: (pd[1]["sizes"][0], pd[0].name)):
+        rows = [{k: v for k, v in r.items() if v is not None} for r in rows_of(doc)]
+        main, studies = ([r for r in rows if ("study" in r) == s] for s in (False, True))
+        head = f"n = {doc['sizes'][0]}, {doc['ranks']} rank(s) (`{path.name}`)"
+        parts.append(f"Table: {source.title}, {head}. Problem: {doc.get('frame', '')}."
+                     f"{run_conditions(doc)}\n\n"
+                     + markdown_table(main, table_columns(source, main)))
+        if studies:
+            study = with_fields(source, columns=DECOMPOSITION_STUDY_COLUMNS)
+            parts.append(f"Table: Studies, {head}.\n\n"
+                         + markdown_table(studies, table_columns(study, studies)))
+        parts.append(f"*Verdict, {head}:* {doc['verdict']}.\n")
+        if any("extrapolated_outer" in r for r in rows):
+            parts.append(f"*{doc['extrapolation']}.*\n")
+    return "\n".join(parts)
+
+
+# --- speed / accuracy (benchmarks/speed_accuracy.py) ------------------------------------------
+
+PARETO_COLUMNS: tuple[str, ...] = ("setting", "vertices", "frames", "wall_s_per_frame",
+                                   "cpu_s_per_frame", "peak_mib", "rms_rel", "max_m",
+                                   "bending_energy_rel", "wavelength_rel", "shell_its")
+"""Columns of the speed/accuracy tables (one row of the benchmark JSON each)."""
+
+
+def speed_row(name: str, row: dict[str, Any]) -> dict[str, Any]:
+    """Return the table row of one setting of ``benchmarks/speed_accuracy.py``'s JSON.
+
+    "-" marks what was not measurable (e.g. no wavelength on a 0-level shell); the
+    reference run has no error entries: 0 by construction.
+    """
+    cells = {"setting": name, "vertices": row.get("vertices", ""),
+             "frames": len(row.get("frame_times", [])),
+             "wall_s_per_frame": row.get("time_per_frame", ""),
+             "cpu_s_per_frame": row.get("cpu_per_frame", ""),
+             "peak_mib": row.get("peak_rss_mib", ""), "rms_rel": row.get("rms_rel", 0.0),
+             "max_m": row.get("max", 0.0),
+             "bending_energy_rel": row.get("bending_energy_rel_error", 0.0),
+             "wavelength_rel": row.get("wavelength_rel_error", 0.0),
+             "shell_its": sum(i or 0 for i in row.get("shell_iterations", []))}
+    return {k: "-" if v is None else v for k, v in cells.items()}
+
+
+def preset_rows(doc: dict[str, Any], by_name: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """Return the rows of the quality presets measured in ``doc``.
+
+    ``doc["presets"]`` maps a quality to the name of its measured row; the name "reference"
+    is the reference run itself (error 0 by construction).
+    """
+    rows = []
+    for quality, name in doc.get("presets", {}).items():
+        row = doc["reference"] if name == "reference" else by_name.get(name)
+        if row is not None:
+            rows.append({**speed_row(name, row), "setting": f"{quality} ({name})"})
+    return rows
+
+
+def speed_accuracy_intro(doc: dict[str, Any], path: Path) -> str:
+    """One paragraph: scene, reference, how many settings ran, the machine load."""
+    ref, rows = doc["reference"], doc["rows"]
+    failed = [r["name"] for r in rows if "error" in r]
+    loads = [x for r in rows for x in r.get("load_avg_1min", [])]
+    load = f"{min(loads):.2f}-{max(loads):.2f}" if loads else "not recorded"
+    return (f"`{doc['scene']}` (`{path.name}`, {doc['date']}), base overrides "
+            f"`{' '.join(doc['base_overrides']) or '(none)'}`. Reference: "
+            f"`{' '.join(ref['overrides'])}`, {ref['vertices']} shell vertices, "
+            f"{fmt(ref['time_per_frame'])} s/frame wall, {fmt(ref.get('cpu_per_frame', ''))} "
+            f"s/frame CPU. Knob groups run: {', '.join(dict.fromkeys(r['group'] for r in rows))}"
+            f". {len(rows)} settings run ({len(failed)} failed"
+            f"{': ' + ', '.join(failed) if failed else ''}); 1-minute load average during "
+            f"the rows {load} on {doc['machine']['cpus']} cores (shared machine: the CPU "
+            f"time of the process is the Pareto axis).\n")
+
+
+def speed_accuracy_notes(doc: dict[str, Any]) -> str:
+    """Knobs left out of the sweep and why; settings the time budget left unrun."""
+    notes = doc.get("notes", {})
+    lines = [f"- {notes['scene']}\n"] if notes.get("scene") else []
+    lines += [f"- left out: {k}: {v}\n" for k, v in notes.get("dropped", {}).items()]
+    if notes.get("not_run"):
+        lines.append(f"- not run (time budget): {', '.join(notes['not_run'])}\n")
+    return "".join(lines)
+
+
+def speed_accuracy_part(doc: dict[str, Any], path: Path) -> str:
+    """Section of one speed/accuracy JSON: intro, Pareto tables, presets, notes."""
+    by_name = {r["name"]: r for r in doc["rows"] if "error" not in r}
+    parts = [speed_accuracy_intro(doc, path)]
+    for key, what in (("pareto", "shell position error rms_rel"),
+                      ("pareto_bending", "bending energy error")):
+        front = [speed_row(n, by_name[n]) for n in doc.get(key, []) if n in by_name]
+        if front:
+            parts.append(f"Table: Pareto-optimal settings on CPU time and {what} "
+                         f"(`{path.name}`).\n\n" + markdown_table(front, PARETO_COLUMNS))
+    presets = preset_rows(doc, by_name)
+    if presets:
+        parts.append(f"Table: Quality presets as measured (`{path.name}`).\n\n"
+                     + markdown_table(presets, PARETO_COLUMNS))
+    parts.append(speed_accuracy_notes(doc))
+    return "\n".join(parts)
+
+
+def speed_accuracy_section(source: Source, files: Sequence[Path]) -> str:
+    """Render the speed/accuracy section: per scene JSON its Pareto tables and presets."""
+    return "\n".join(speed_accuracy_part(json.loads(f.read_text()), f) for f in files)
 
 
 SOURCES: tuple[Source, ...] = (
@@ -81,11 +223,17 @@ SOURCES: tuple[Source, ...] = (
             "on_edges.area_fraction", "on_edges.ratio", "on_edges.correlation", "wavelength",
             "amplitude")),
     Source("speed_accuracy", "Speed against accuracy (Pareto front)",
-           "benchmarks/results/speed_accuracy.json", "python benchmarks/speed_accuracy.py",
-           ("name", "vertices", "time_per_frame", "peak_rss_mib", "rms_rel", "max",
-            "bending_energy_rel_error", "wavelength", "pareto")),
+           "benchmarks/results/speed_accuracy*.json",
+           "python benchmarks/speed_accuracy.py --resume (and --scene "
+           "scenes/ball_sofa_coarse.toml --out benchmarks/results/"
+           "speed_accuracy_ball_sofa.json, see its docstring)",
+           render=speed_accuracy_section),
     Source("decomposition", "Solving in parts against solving whole",
-           "benchmarks/results/decomposition*.json", "python benchmarks/decomposition.py"),
+           "benchmarks/results/decomposition_*.json",
+           "mpiexec -n 2 python benchmarks/decomposition.py",
+           ("method", "ranks", "patches", "outer", "converged", "stopped_by", "grad_reduction",
+            "energy_gap", "max_diff", "time", "speedup", "extrapolated_outer",
+            "extrapolated_time"), render=decomposition_section),
     Source("shell_kernels", "Shell energy kernels",
            "benchmarks/results/shell_kernels.json", "python benchmarks/shell_kernels.py",
            ("kind", "size", "reorder", "n_vertices", "terms_us_per_vertex.membrane_edge.order2",
@@ -95,8 +243,13 @@ SOURCES: tuple[Source, ...] = (
            "benchmarks/results/shell_solve.json", "python benchmarks/shell_solve.py",
            ("mesh", "size", "system", "dofs", "backend", "ok", "analysis", "first", "refact",
             "solve", "negative_pivots", "mumps_mb")),
-    Source("scaling", "Parallel scaling", "benchmarks/results/scaling*.json",
-           "python benchmarks/scaling.py"),
+    Source("scaling", "Cost against shell size, each size in its own process (seconds; cpu = "
+           "process CPU time; frames.1 = the warm-started frame; load_end.0 = one-minute load "
+           "average)", "benchmarks/results/scaling*.json",
+           "python benchmarks/scaling.py",
+           ("size", "n", "clusters", "method", "setup_cpu", "setup.hierarchy.cpu",
+            "setup.clusters.cpu", "setup.energy.cpu", "frames.1.cpu", "frames.1.wall",
+            "frames.1.iterations", "frames.1.cg_iterations", "peak_mib", "load_end.0")),
 )
 
 
@@ -252,17 +405,38 @@ def source_block(source: Source, build: Path, strict: bool) -> tuple[str, list[P
             raise PaperError(f"--strict: {pattern} is missing; run '{source.command}'")
         return (f"*Not run* (no `{source.pattern.format(build='paper/build')}`; "
                 f"produce it with `{source.command}`).\n", [])
+    if source.render is not None:  # its own text, then the plots beside the JSON files
+        figures = [line for path in files for line in sibling_figure(path, build)]
+        return "\n".join([source.render(source, files), *figures]), files
     parts = []
     for path in files:
         doc = json.loads(path.read_text())
         rows = mark_pareto(doc, rows_of(doc))
         parts.append(f"Table: {source.title} (`{path.name}`).\n\n"
                      + markdown_table(rows, table_columns(source, rows)))
-        parts.extend(figure_lines(doc, build) + sibling_figure(path, build))
+        parts.extend(figure_lines(doc, build) + sibling_figure(path, build) + fit_lines(doc))
     named = f"figures/{source.name}.png"
     if (build / named).is_file() and not any(named in part for part in parts):
         parts.append(f"![{source.name}]({named})\n")  # e.g. wavelength.py's figure
     return "\n".join(parts), files
+
+
+def fit_lines(doc: Any) -> list[str]:
+    """Table of the growth exponents a JSON lists in ``meta.exponents`` (benchmarks/scaling.py).
+
+    Each entry ``{name: {"p", "rms_log_residual", "max_log_residual", "local"}}`` is the
+    least-squares line of ``log y`` on ``log n``; older JSON (bare floats) gives nothing.
+    """
+    fits = doc.get("meta", {}).get("exponents") if isinstance(doc, dict) else None
+    if not isinstance(fits, dict) or not all(isinstance(v, dict) for v in fits.values()):
+        return []
+    rows = [{"quantity": k, "exponent_p": v["p"], "rms_log_residual": v["rms_log_residual"],
+             "max_log_residual": v["max_log_residual"],
+             "local_slopes": " / ".join(f"{s:.3g}" for s in v["local"])}
+            for k, v in fits.items()]
+    return ["Table: Fitted growth exponents, y ~ n^p (least squares on log-log).\n\n"
+            + markdown_table(rows, ("quantity", "exponent_p", "rms_log_residual",
+                                    "max_log_residual", "local_slopes"))]
 
 
 def mark_pareto(doc: Any, rows: list[dict[str, Any]]) -> list[dict[str, Any]]:

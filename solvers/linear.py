@@ -341,6 +341,77 @@ def set_mumps_controls(factor: Any, opts: LinearSolverOptions) -> None:
         factor.setMumpsIcntl(int(index), int(value))
 
 
+def factor_ksp(mat: Any, options: LinearSolverOptions, comm: Any,
+               mumps_icntl: tuple[tuple[int, int], ...] | None = None) -> Any:
+    """KSPPREONLY + PCFactor of ``options.backend`` on ``mat`` (serial and distributed solves).
+
+    LU for ``options.symmetric == "lu"``, else Cholesky (MUMPS: LDL^T unless ``mat`` is
+    flagged SPD). With ``mumps_icntl`` (MUMPS only) the factor matrix is created at once and
+    gets these ``(index, value)`` controls, then :func:`set_mumps_controls`; without, the
+    package's defaults apply (a caller that sets package options first then calls
+    ``pc.setFactorSetUpSolverType()`` itself).
+    """
+    ksp = PETSc.KSP().create(comm=comm)
+    ksp.setOperators(mat)
+    ksp.setType(PETSc.KSP.Type.PREONLY)
+    pc = ksp.getPC()
+    pc.setType("lu" if options.symmetric == "lu" else "cholesky")
+    pc.setFactorSolverType(options.backend)
+    if mumps_icntl is not None:
+        pc.setFactorSetUpSolverType()
+        factor = pc.getFactorMatrix()
+        for index, value in mumps_icntl:
+            factor.setMumpsIcntl(index, value)
+        set_mumps_controls(factor, options)
+    return ksp
+
+
+def coo_aij(comm: Any, local: int, total: int, rows: np.ndarray, cols: np.ndarray) -> Any:
+    """Symmetric AIJ ``total x total`` with ``local`` rows on this rank, COO pattern given.
+
+    ``rows`` / ``cols`` are global indices of this rank's entries; the pattern is set once
+    (``MatSetPreallocationCOO``), so ``setValuesCOO`` keeps the nonzero state and the
+    factorisation's symbolic analysis is reused.
+    """
+    mat: Any = PETSc.Mat().create(comm=comm)
+    mat.setSizes(((local, total), (local, total)))
+    mat.setType(PETSc.Mat.Type.AIJ)
+    mat.setPreallocationCOO(rows.astype(PETSc.IntType), cols.astype(PETSc.IntType))
+    mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+    return mat
+
+
+def factor_event_totals(symmetric: str) -> tuple[tuple[float, int], tuple[float, int]]:
+    """(time, count) of PETSc's symbolic and numeric factorisation log events so far."""
+    infos = [PETSc.Log.Event(name).getPerfInfo() for name in _FACTOR_EVENTS[symmetric]]
+    return (infos[0]["time"], infos[0]["count"]), (infos[1]["time"], infos[1]["count"])
+
+
+def factor_status(pc: Any, failed: int, error: str,
+                  options: LinearSolverOptions) -> tuple[bool, int | None, str]:
+    """Success, negative pivots and reason of the factorisation :func:`setup_pc` ran.
+
+    ``failed`` / ``error`` are :func:`setup_pc`'s. MUMPS: ``INFOG(1) < 0`` is a failure
+    (reason with ``INFOG(2)``), the negative pivots are ``INFOG(12)`` (not for LU); PETSc
+    Cholesky: the inertia's negative count.
+    """
+    if failed == -1:
+        return False, None, error
+    factor = pc.getFactorMatrix()
+    if options.backend == "mumps":
+        infog1 = factor.getMumpsInfog(1)
+        if infog1 < 0:
+            return False, None, f"MUMPS INFOG(1)={infog1}, INFOG(2)={factor.getMumpsInfog(2)}"
+        negatives = None if options.symmetric == "lu" else factor.getMumpsInfog(12)
+    elif options.backend == "petsc" and options.symmetric == "cholesky":
+        negatives = int(factor.getInertia()[0]) if failed == 0 else None
+    else:
+        negatives = None
+    if failed != 0:
+        return False, negatives, f"PCFailedReason {failed} (zero pivot / breakdown)"
+    return True, negatives, "ok"
+
+
 class _PetscBackend:
     """PCFactor (MUMPS / PETSc / SuperLU_DIST) on a matrix built once."""
 
@@ -382,13 +453,11 @@ class _PetscBackend:
 
     def _create_ksp(self) -> Any:
         """KSPPREONLY + PCFactor of the chosen backend, ordering and MUMPS controls."""
-        ksp = PETSc.KSP().create(PETSc.COMM_SELF)
-        ksp.setOperators(self.mat)
-        ksp.setType(PETSc.KSP.Type.PREONLY)
-        pc = ksp.getPC()
-        pc.setType("lu" if self.options.symmetric == "lu" else "cholesky")
-        pc.setFactorSolverType(self.options.backend)
         opts = self.options
+        if opts.backend == "mumps":
+            return factor_ksp(self.mat, opts, PETSc.COMM_SELF, mumps_icntl=())
+        ksp = factor_ksp(self.mat, opts, PETSc.COMM_SELF)
+        pc = ksp.getPC()
         if opts.backend == "petsc":
             pc.setFactorOrdering(opts.resolved_ordering)
         elif opts.backend == "superlu_dist":
@@ -399,13 +468,7 @@ class _PetscBackend:
         pc.setFactorSetUpSolverType()  # creates the factor matrix, which reads the options
         if opts.backend == "superlu_dist":
             PETSc.Options().delValue(f"{ksp.getOptionsPrefix()}mat_superlu_dist_colperm")
-        if opts.backend == "mumps":
-            self._set_mumps_controls(pc.getFactorMatrix())
         return ksp
-
-    def _set_mumps_controls(self, factor: Any) -> None:
-        """ICNTL(7) ordering, ICNTL(35) BLR (+ CNTL(7)), then the user's ICNTL pairs."""
-        set_mumps_controls(factor, self.options)
 
     def update(self, data: np.ndarray) -> None:
         """Copy new values in place; the nonzero state is unchanged (analysis is reused)."""
@@ -418,25 +481,19 @@ class _PetscBackend:
             np.copyto(self._values, data)
             self.mat.stateIncrease()
 
-    def _event_totals(self) -> tuple[tuple[float, int], tuple[float, int]]:
-        """(time, count) of the symbolic and numeric factorisation log events."""
-        names = _FACTOR_EVENTS[self.options.symmetric]
-        infos = [PETSc.Log.Event(name).getPerfInfo() for name in names]
-        return (infos[0]["time"], infos[0]["count"]), (infos[1]["time"], infos[1]["count"])
-
     def factorize(self) -> FactorReport:
         """PCSetUp; time the phases from PETSc's log events; read MUMPS / inertia info."""
         pc = self.ksp.getPC()
-        (sym0, nsym0), _ = self._event_totals()
-        failed, reason, total = setup_pc(pc)
-        (sym1, nsym1), _ = self._event_totals()
+        (sym0, nsym0), _ = factor_event_totals(self.options.symmetric)
+        failed, error, total = setup_pc(pc)
+        (sym1, nsym1), _ = factor_event_totals(self.options.symmetric)
         self.factorizations += 1
         analysis = sym1 - sym0
         # SuperLU_DIST logs no symbolic event and only keeps its column ordering
         # (Fact = SamePattern): it is never reported as reusing the analysis
         reused = (nsym1 == nsym0 and self.factorizations > 1
                   and self.options.backend != "superlu_dist")
-        success, negatives, why = self._factor_info(pc, failed)
+        success, negatives, reason = factor_status(pc, failed, error, self.options)
         nnz, memory = self._factor_size(pc) if success else (None, None)
         if not success:
             # PCSetUp skips the numeric phase while the factor keeps its error flag (petsc4py
@@ -445,7 +502,7 @@ class _PetscBackend:
             self.ksp.destroy()
             self.ksp = self._create_ksp()
             self.factorizations = 0
-        return FactorReport(success=success, reason=why if reason == "ok" else reason,
+        return FactorReport(success=success, reason=reason,
                             negative_pivots=negatives, expected_negative=self.expected_negative,
                             analysis_time=analysis, numeric_time=total - analysis,
                             reused_analysis=reused, factor_nnz=nnz, memory_mb=memory)
@@ -460,24 +517,6 @@ class _PetscBackend:
         if self.options.backend == "petsc":
             return int(factor.getInfo()["nz_used"]), None
         return None, None
-
-    def _factor_info(self, pc: Any, failed: int) -> tuple[bool, int | None, str]:
-        """Success flag, negative pivot count and reason from the factor matrix."""
-        if failed == -1:
-            return False, None, "PETSc error"
-        factor = pc.getFactorMatrix()
-        if self.options.backend == "mumps":
-            infog1 = factor.getMumpsInfog(1)
-            if infog1 < 0:
-                return False, None, f"MUMPS INFOG(1)={infog1}, INFOG(2)={factor.getMumpsInfog(2)}"
-            negatives = None if self.options.symmetric == "lu" else factor.getMumpsInfog(12)
-        elif self.options.backend == "petsc" and self.options.symmetric == "cholesky":
-            negatives = int(factor.getInertia()[0]) if failed == 0 else None
-        else:
-            negatives = None
-        if failed != 0:
-            return False, negatives, f"PCFailedReason {failed} (zero pivot / breakdown)"
-        return True, negatives, "ok"
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """Forward/backward substitution with the current factor."""

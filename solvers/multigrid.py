@@ -30,7 +30,20 @@ acceptance test (MISSION.md section 6: iterative solvers stall on bending, check
 residuals). With the exact Hessian an indefinite Newton matrix makes CG break down
 (``KSP_DIVERGED_INDEFINITE_MAT``) or return a non-descent direction: the solve then falls back
 to the direct factorisation (when enabled), which reports the inertia, and the shell Newton
-moves on to a shifted Hessian.
+moves on to a shifted Hessian; with ``fallback = False`` the failed CG alone sends the shell
+Newton to the next shift (no factorisation of the fine matrix at all).
+
+Cost per set-up and per CG iteration (what a Newton iteration pays besides the evaluation):
+
+* the Galerkin products reuse their symbolic part (``MatPtAP`` with ``MAT_REUSE_MATRIX``), the
+  coarse factorisation its MUMPS analysis (same pattern: numeric refactorisation only);
+* ``eigen_estimate = "solve"`` keeps the Chebyshev bounds of the first set-up of a Newton
+  solve (10 GMRES steps per level saved per set-up); the Jacobi diagonals follow every new
+  matrix (a ``PCPython`` reading the level operator's diagonal). A CG failure with bounds
+  from an earlier Newton iteration re-estimates and retries once (see :meth:`solve`);
+* ``level_format = "sbaij"`` multiplies with a symmetric 3 x 3 block copy of ``A_l`` (upper
+  triangle), about 40 % of the bytes of the AIJ product the memory-bound smoother streams;
+* the penalty ``G_l^T (G_l x)`` is two PETSc products into a preallocated work vector.
 
 Measured (tests/test_multigrid.py, Gauss-Newton Hessian of a 7 %-compressed plate, 6 x 6
 coarse grid): CG to true residual 1e-8 in 15 / 20 / 21 iterations at 625 / 2401 / 9409
@@ -38,7 +51,20 @@ vertices (2 / 3 / 4 levels; Jacobi-CG: 470 / 883 / 1284), i.e. a mild growth (it
 n^0.12), not level-independent: linear prolongation is not H^2-accurate for the bending part.
 benchmarks/iterative.py (shared, contended machine, process CPU time per Newton iteration):
 40k vertices direct 2.19 s, multigrid 1.33 s (same gradient history to 3.4e-6), 160k
-multigrid 6.3 s (31 CG iterations per solve), multigrid + Eisenstat-Walker 2.4 s.
+multigrid 6.3 s (31 CG iterations per solve), multigrid + Eisenstat-Walker 2.4 s (session 2).
+Session 3, 160k, load about 5 (benchmarks/results/iterative_160k_flat.json, Gauss-Newton, 3
+iterations from the flat start): default options 5.30 s (CG 4.13 s), Eisenstat-Walker 2.68 s
+(CG 1.10 s), the same 21 CG iterations with ``eigen_estimate = "solve"``, ``level_format =
+"sbaij"`` 2.58 s (CG 0.63 s: 0.157 -> 0.089 s per CG iteration), the evaluation 0.5-1.0 s.
+On a warm-started frame with the exact Hessian (iterative_160k_conv.json, to 1e-8 ||g_0||)
+the multigrid keeps the direct solve's 6 Newton iterations and minimiser (energy 4e-15,
+vertices 9e-11) but its CG needs 80-121 iterations per solve near the wrinkled minimum
+(33-35 at 10k): 5.1 s per Newton iteration (Eisenstat-Walker) against 13.9 s direct. The soft
+wrinkle modes are oscillatory at the scale of the two finest levels, where linear
+subdivision prolongs them poorly. A W-cycle (iterative_160k_conv_w.json) halves the CG
+iterations (374 -> 193 for fixed 1e-4, same 6 Newton iterations, 5.8 s per iteration) but
+with Eisenstat-Walker it needs 8 Newton iterations (4.0 s each, 32 s in all against 30 s).
+The issue's 2 s per Newton iteration is not reached on that frame.
 
 Inexact Newton: with ``forcing = "eisenstat_walker"`` the CG tolerance of Newton iteration k is
 Eisenstat & Walker's choice 2 (SIAM J. Sci. Comput. 17, 1996, eq. 2.6 with the safeguard of
@@ -63,6 +89,8 @@ from solvers.linear import FactorReport
 FORCING: tuple[str, ...] = ("fixed", "eisenstat_walker")
 CYCLES: tuple[str, ...] = ("v", "w")
 SMOOTHER_PCS: tuple[str, ...] = ("jacobi", "sor")
+EIGEN_ESTIMATES: tuple[str, ...] = ("setup", "solve")
+LEVEL_FORMATS: tuple[str, ...] = ("aij", "sbaij")
 
 
 @dataclass(frozen=True)
@@ -91,7 +119,22 @@ class MultigridOptions:
             drifts from the true one by round-off).
         fallback: On CG failure (no convergence, breakdown, true residual too large) solve
             with the direct factorisation instead (counted in ``KrylovStats.fallbacks``);
-            False returns NaN, which the Newton treats as a failed direction.
+            False returns NaN, which the Newton treats as a failed direction (the shell
+            Newton then retries with the next diagonal shift, set up by multigrid again).
+        eigen_estimate: When the Chebyshev smoothers re-estimate ``lambda_max(D^-1 A_l)`` (10
+            GMRES steps per level): "setup" after every set-up (every Newton iteration and
+            shift), "solve" once per Newton solve (per frame: at the first set-up after
+            :meth:`MultigridLinearSystem.reset_forcing`), later set-ups keep the bounds and
+            only refresh the Jacobi diagonal. "solve" needs ``smoother_pc = "jacobi"``.
+        level_format: Storage of the level matrices ``A_l`` (l >= 1) in the CG and smoother
+            products: "aij" (the Galerkin products themselves) or "sbaij" (a symmetric 3 x 3
+            block copy made at every set-up: the upper triangle only, about 40 % of the AIJ
+            bytes per product, which is memory-bound). The Galerkin products stay AIJ.
+        target_fraction: When > 0 (and the Newton solver passes its gradient tolerance
+            ``tol``), the CG tolerance of an iteration is at least
+            ``min(ew_max, target_fraction tol / ||g_k||)``: the last Newton step is solved
+            only as accurately as reaching ``target_fraction tol`` needs (dimensionless,
+            in [0, 1); 0 = off).
 
     """
 
@@ -106,17 +149,23 @@ class MultigridOptions:
     cycle: str = "v"
     residual_slack: float = 10.0
     fallback: bool = True
+    eigen_estimate: str = "setup"
+    level_format: str = "aij"
+    target_fraction: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.forcing not in FORCING:
-            raise InputError(f"MultigridOptions.forcing: expected one of {list(FORCING)}, got "
-                             f"{self.forcing!r}")
-        if self.smoother_pc not in SMOOTHER_PCS:
-            raise InputError(f"MultigridOptions.smoother_pc: expected one of "
-                             f"{list(SMOOTHER_PCS)}, got {self.smoother_pc!r}")
-        if self.cycle not in CYCLES:
-            raise InputError(f"MultigridOptions.cycle: expected one of {list(CYCLES)}, got "
-                             f"{self.cycle!r}")
+        if not 0 <= self.target_fraction < 1:
+            raise InputError(f"MultigridOptions.target_fraction: must be in [0, 1), got "
+                             f"{self.target_fraction!r}")
+        choices = {"level_format": LEVEL_FORMATS, "eigen_estimate": EIGEN_ESTIMATES,
+                   "forcing": FORCING, "smoother_pc": SMOOTHER_PCS, "cycle": CYCLES}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise InputError(f"MultigridOptions.{name}: expected one of {list(allowed)}, "
+                                 f"got {getattr(self, name)!r}")
+        if self.eigen_estimate == "solve" and self.smoother_pc != "jacobi":
+            raise InputError("MultigridOptions.eigen_estimate: 'solve' needs smoother_pc = "
+                             "'jacobi' (SOR re-reads the changing A_l)")
         _check_open(self.rtol, 0.0, 1.0, "rtol")
         _check_open(self.ew_max, 0.0, 1.0, "ew_max")
         _check_open(self.ew_gamma, 0.0, 1.0 + 1e-15, "ew_gamma")
@@ -208,16 +257,24 @@ def eisenstat_walker(grad_norm: float, previous_norm: float, previous_eta: float
 
 
 class _LowRankOperator:
-    """``MatPython`` context of ``A + G^T G`` (A a PETSc AIJ, G a constant scipy CSR)."""
+    """``MatPython`` context of ``A + G^T G`` (A and G PETSc AIJ; every product in C).
 
-    def __init__(self, a: Any, g: sp.csr_matrix) -> None:
-        self.a, self.g, self.gt = a, g, g.T.tocsr()
-        self.g_diagonal = np.asarray(g.multiply(g).sum(axis=0)).ravel()
+    ``y = A x + G^T (G x)`` is three sparse products into preallocated vectors (``MatMult``,
+    ``MatMult`` and ``MatMultTransposeAdd``): no Python-side copy or allocation per call.
+    """
+
+    def __init__(self, a: Any, g: sp.csr_matrix | None) -> None:
+        self.a = a
+        self.g = None if g is None else _aij(g)
+        self.gx = None if self.g is None else self.g.createVecs()[1]
+        self.g_diagonal = 0.0 if g is None else np.asarray(g.multiply(g).sum(axis=0)).ravel()
 
     def mult(self, mat: Any, x: Any, y: Any) -> None:  # noqa: ARG002 (petsc4py signature)
-        """``y = A x + G^T (G x)``."""
+        """``y = A x + G^T (G x)`` (``A x`` without a penalty)."""
         self.a.mult(x, y)
-        y.getArray()[:] += self.gt @ (self.g @ x.getArray(readonly=True))
+        if self.g is not None:
+            self.g.mult(x, self.gx)
+            self.g.multTransposeAdd(self.gx, y, y)
 
     def getDiagonal(self, mat: Any, d: Any) -> None:  # noqa: N802, ARG002 (petsc4py names)
         """``d = diag(A) + colsum(G .* G)``."""
@@ -225,22 +282,46 @@ class _LowRankOperator:
         d.getArray()[:] += self.g_diagonal
 
 
-def _python_operator(a: Any, g: sp.csr_matrix) -> Any:
-    """Wrap ``A + G^T G`` as a matrix-free ``MatPython``."""
-    n = a.getSize()[0]
-    mat: Any = PETSc.Mat().createPython((n, n), _LowRankOperator(a, g), comm=PETSc.COMM_SELF)
+class _Jacobi:
+    """``PCPython`` context ``y = D^{-1} x`` with D refreshed in place (``refresh``).
+
+    Used with ``eigen_estimate = "solve"``: the level operator keeps its PETSc object state,
+    so the Chebyshev smoother keeps its eigenvalue bounds, while the diagonal follows the
+    current Newton matrix.
+    """
+
+    def __init__(self, op: Any) -> None:
+        self.op = op
+        self.inverse = op.createVecs()[0]
+        self.refresh()
+
+    def refresh(self) -> None:
+        """``D^{-1}`` of the operator's current diagonal."""
+        self.op.getDiagonal(self.inverse)
+        self.inverse.reciprocal()
+
+    def apply(self, pc: Any, x: Any, y: Any) -> None:  # noqa: ARG002 (petsc4py signature)
+        """``y = D^{-1} x``."""
+        y.pointwiseMult(x, self.inverse)
+
+
+def _python_operator(product: _LowRankOperator) -> Any:
+    """Wrap ``A + G^T G`` (or ``A`` alone when g is None) as a matrix-free ``MatPython``."""
+    n = product.a.getSize()[0]
+    mat: Any = PETSc.Mat().createPython((n, n), product, comm=PETSc.COMM_SELF)
     mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
     mat.setUp()
     return mat
 
 
-def _aij(csr: sp.csr_matrix) -> Any:
-    """Copy a scipy CSR matrix into a PETSc sequential AIJ."""
+def _aij(csr: sp.csr_matrix, block: int = 1) -> Any:
+    """Copy a scipy CSR matrix into a PETSc sequential AIJ (``block``: its block size)."""
     c = sp.csr_matrix(csr)
     c.sort_indices()
     return PETSc.Mat().createAIJ(
-        c.shape, csr=(c.indptr.astype(PETSc.IntType), c.indices.astype(PETSc.IntType),
-                      c.data.astype(PETSc.ScalarType)), comm=PETSc.COMM_SELF)
+        c.shape, bsize=block,
+        csr=(c.indptr.astype(PETSc.IntType), c.indices.astype(PETSc.IntType),
+             c.data.astype(PETSc.ScalarType)), comm=PETSc.COMM_SELF)
 
 
 def _scipy_of(mat: Any) -> sp.csr_matrix:
@@ -267,8 +348,8 @@ class FineMatrix:
             raise InputError("MultigridLinearSystem: the Hessian pattern must contain the "
                              "diagonal")
         mat: Any = PETSc.Mat()
-        mat.createAIJWithArrays(
-            pattern.shape, (self.indptr, self.indices, self.values), comm=PETSc.COMM_SELF)
+        mat.createAIJWithArrays(pattern.shape, (self.indptr, self.indices, self.values),
+                                bsize=3, comm=PETSc.COMM_SELF)
         mat.assemble()
         self.mat = mat
 
@@ -286,6 +367,8 @@ class KrylovStats:
 
     Attributes:
         setups: Preconditioner set-ups (Galerkin products + smoother + coarse factorisation).
+        eigen_estimates: Set-ups after which the Chebyshev smoothers re-estimate their
+            eigenvalue bounds.
         setup_time: Seconds in set-ups.
         solves: CG solves.
         solve_time: Seconds in CG solves (true-residual check and fallbacks included).
@@ -297,6 +380,7 @@ class KrylovStats:
     """
 
     setups: int = 0
+    eigen_estimates: int = 0
     setup_time: float = 0.0
     solves: int = 0
     solve_time: float = 0.0
@@ -343,7 +427,7 @@ class MultigridLinearSystem:
             if fine.shape[1] != coarse.shape[0]:
                 raise InputError("MultigridLinearSystem: prolongation shapes do not chain")
         self.p_scipy = tuple(sp.csr_matrix(p) for p in prolongations)
-        self.p_mats = [_aij(p) for p in self.p_scipy]
+        self.p_mats = [_aij(p, block=3) for p in self.p_scipy]
         self.options, self.fallback = options, fallback
         self.n = self.p_scipy[-1].shape[0]
         self.stats = KrylovStats()
@@ -353,11 +437,16 @@ class MultigridLinearSystem:
         self._galerkin: list[Any] = []
         self._g_source: sp.csr_matrix | None = None
         self._g_levels: list[sp.csr_matrix | None] = []
+        self._coarse_penalty: sp.csr_matrix | None = None
         self._operators: list[Any] = []
         self._coarse: Any = None
         self._coarse_pattern: sp.csr_matrix | None = None
         self._ksp: Any = None
         self._current: tuple[Any, float] | None = None
+        self._jacobi: list[_Jacobi] = []
+        self._products: list[_LowRankOperator] = []
+        self._estimate_due = True
+        self._bounds_stale = False
 
     # ----------------------------------------------------------------------------- set-up
 
@@ -378,8 +467,8 @@ class MultigridLinearSystem:
         self._update_coarse()
         if self._ksp is None:
             self._ksp = self._create_ksp()
-        for op in self._operators:
-            op.stateIncrease()
+        self._refresh_products()
+        self._refresh_smoothers()
         self._ksp.setUp()
         self._current = (ev, tau)
         elapsed = time.perf_counter() - start
@@ -396,6 +485,8 @@ class MultigridLinearSystem:
         for p in reversed(self.p_scipy):
             chain.append(None if chain[-1] is None else (chain[-1] @ p).tocsr())
         self._g_levels = chain[::-1]
+        g0 = self._g_levels[0]
+        self._coarse_penalty = None if g0 is None else (g0.T @ g0).tocsr()
         self._coarse_pattern = None
         self._ksp = None  # the level operators change: rebuilt by _update_coarse/_create_ksp
 
@@ -413,10 +504,10 @@ class MultigridLinearSystem:
             self._galerkin[level + 1].PtAP(self.p_mats[level], result=self._galerkin[level])
 
     def _update_coarse(self) -> None:
-        """Assemble ``A_0 + G_0^T G_0`` into the coarse matrix of fixed pattern."""
+        """Assemble ``A_0 + G_0^T G_0`` (the constant penalty part kept) into the coarse matrix."""
         a0 = _scipy_of(self._galerkin[0])
-        g0 = self._g_levels[0]
-        total = a0 if g0 is None else (a0 + (g0.T @ g0)).tocsr()
+        penalty = self._coarse_penalty
+        total = a0 if penalty is None else (a0 + penalty).tocsr()
         total.sort_indices()
         if self._coarse is None or self._coarse_pattern is None \
                 or total.nnz != self._coarse_pattern.nnz:
@@ -428,14 +519,48 @@ class MultigridLinearSystem:
                                   total.indices.astype(PETSc.IntType), total.data)
         self._coarse.assemble()
 
+    def _refresh_smoothers(self) -> None:
+        """Make the smoothers see the new level operators.
+
+        An object-state increase makes every Chebyshev smoother re-estimate its eigenvalue
+        bounds at the next solve (counted in ``KrylovStats.eigen_estimates``); with
+        ``eigen_estimate = "solve"`` that happens once per Newton solve and the other set-ups
+        only refresh the Jacobi diagonals.
+        """
+        for jacobi in self._jacobi:
+            jacobi.refresh()
+        if self._estimate_due:
+            self._estimate()
+            self._estimate_due = self.options.eigen_estimate == "setup"
+
+    def _estimate(self) -> None:
+        """Make the Chebyshev smoothers re-estimate their bounds at the next solve."""
+        for op in self._operators:
+            op.stateIncrease()
+        self.stats.eigen_estimates += 1
+        self._bounds_stale = False
+
+    def _refresh_products(self) -> None:
+        """Point the level operators at this set-up's ``A_l`` (an SBAIJ copy if asked)."""
+        if self.options.level_format == "aij":
+            return
+        for product, a in zip(self._products, self._galerkin[1:], strict=True):
+            # converting A_l itself breaks the reused MatPtAP (PETSc 3.25: a segfault when
+            # A_l is a PtAP result, a wrong next product when it is the fine matrix): copy first
+            source = a.copy()
+            source.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+            product.a = source.convert("sbaij")
+
     def _level_operators(self) -> list[Any]:
-        """Per level (coarse to fine): ``A_l`` or the matrix-free ``A_l + G_l^T G_l``."""
-        ops: list[Any] = [self._coarse]
-        for level in range(1, len(self._galerkin)):
-            g = self._g_levels[level]
-            a = self._galerkin[level]
-            ops.append(a if g is None else _python_operator(a, g))
-        return ops
+        """Per level (coarse to fine): the assembled coarse matrix, then ``A_l + G_l^T G_l``.
+
+        Every fine level is a ``MatPython`` (penalty or not) whose object state only changes
+        when new eigenvalue bounds are due (``eigen_estimate``) and whose product matrix is
+        swapped for the SBAIJ copy (``level_format``).
+        """
+        self._products = [_LowRankOperator(a, g)
+                          for a, g in zip(self._galerkin[1:], self._g_levels[1:], strict=True)]
+        return [self._coarse, *(_python_operator(p) for p in self._products)]
 
     def _smoother_matrix(self, level: int, op: Any) -> Any:
         """Matrix the level smoother's PC reads: ``op``, or the AIJ ``A_l`` for SOR."""
@@ -463,32 +588,64 @@ class MultigridLinearSystem:
             pc.getMGSmoother(level).setOperators(op, self._smoother_matrix(level, op))
         ksp.setOperators(self._operators[-1])
         # the level smoothers read the options database during the first PCSetUp only
-        values = _pcmg_options(self.options.smoother_degree, self.options.smoother_pc)
+        smoother_pc = "python" if self.options.eigen_estimate == "solve" \
+            else self.options.smoother_pc
+        values = _pcmg_options(self.options.smoother_degree, smoother_pc)
         db = PETSc.Options()
         for key, value in values.items():
             db.setValue(prefix + key, value)
         try:
             ksp.setFromOptions()
+            self._python_jacobi(pc)
             ksp.setUp()
         finally:
             for key in values:
                 db.delValue(prefix + key)
         return ksp
 
+    def _python_jacobi(self, pc: Any) -> None:
+        """``eigen_estimate = "solve"``: the fine levels' Jacobi as :class:`_Jacobi` PCs."""
+        if self.options.eigen_estimate != "solve":
+            self._jacobi = []
+            return
+        self._jacobi = [_Jacobi(op) for op in self._operators[1:]]
+        for level, jacobi in enumerate(self._jacobi, start=1):
+            level_pc = pc.getMGSmoother(level).getPC()
+            level_pc.setType(PETSc.PC.Type.PYTHON)
+            level_pc.setPythonContext(jacobi)
+        self._estimate_due = True
+
     # ----------------------------------------------------------------------------- solve
 
     def reset_forcing(self) -> None:
-        """Start a new Newton solve: the next forcing term is ``ew_max`` (no history)."""
-        self._grad_history = (0.0, self.options.ew_max)
+        """Start a new Newton solve: the next forcing term is ``ew_max`` (no history).
 
-    def set_gradient_norm(self, grad_norm: float) -> None:
-        """Choose the CG tolerance of this Newton iteration from ``||g_k||`` (forcing term)."""
+        The next set-up also re-estimates the Chebyshev bounds (``eigen_estimate``).
+        """
+        self._grad_history = (0.0, self.options.ew_max)
+        self._estimate_due = True
+
+    def set_gradient_norm(self, grad_norm: float, target: float = 0.0) -> None:
+        """Choose the CG tolerance of this Newton iteration from ``||g_k||`` (forcing term).
+
+        Called once per Newton iteration: from now on the Chebyshev bounds of earlier
+        iterations count as stale (see :meth:`solve`). ``target`` is the Newton gradient
+        tolerance (0 = unknown): with ``target_fraction`` the CG tolerance is raised to
+        ``min(ew_max, target_fraction target / ||g_k||)`` when that is larger, since the
+        linearised gradient after the step, ``||g_k + A dx|| <= eta ||g_k||``, then already
+        lies below ``target_fraction`` times the tolerance.
+        """
+        self._bounds_stale = True
         if self.options.forcing == "fixed":
-            self.eta = self.options.rtol
-            return
-        previous_norm, previous_eta = self._grad_history
-        self.eta = eisenstat_walker(grad_norm, previous_norm, previous_eta, self.options)
-        self._grad_history = (grad_norm, self.eta)
+            eta = self.options.rtol
+        else:
+            previous_norm, previous_eta = self._grad_history
+            eta = eisenstat_walker(grad_norm, previous_norm, previous_eta, self.options)
+            self._grad_history = (grad_norm, eta)
+        if self.options.target_fraction > 0 and target > 0 and grad_norm > 0:
+            eta = max(eta, min(self.options.ew_max,
+                               self.options.target_fraction * target / grad_norm))
+        self.eta = eta
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """Return ``(A + tau I + G^T G) x`` of the current system (scipy; true residuals)."""
@@ -505,19 +662,34 @@ class MultigridLinearSystem:
         return float(np.linalg.norm(rhs - self.apply(x))) / norm_b
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
-        """CG to the forcing term; fallback to the direct solve on failure (see options)."""
+        """CG to the forcing term; fallback to the direct solve on failure (see options).
+
+        With ``eigen_estimate = "solve"`` a failed CG whose Chebyshev bounds come from an
+        earlier Newton iteration is repeated once with new bounds (an underestimated
+        ``lambda_max`` makes the smoother amplify, the preconditioner indefinite); bounds
+        estimated in this Newton iteration stay valid for its shifted retries, since a shift
+        ``tau`` only moves the spectrum of ``(D + tau)^{-1} (A + tau I)`` towards 1.
+        """
         start = time.perf_counter()
         try:
-            x, its, reason = self._cg(rhs)
-            self.stats.iterations.append(its)
-            residual = self.true_residual(x, rhs) if reason > 0 else np.inf
-            if reason > 0 and residual <= self.options.residual_slack * self.eta:
-                self.stats.true_residuals.append(residual)
-                return x
-            return self._fallback(rhs)
+            x = self._accepted_cg(rhs)
+            if x is None and self._bounds_stale and self.options.eigen_estimate == "solve":
+                self._estimate()
+                x = self._accepted_cg(rhs)
+            return x if x is not None else self._fallback(rhs)
         finally:
             self.stats.solves += 1
             self.stats.solve_time += time.perf_counter() - start
+
+    def _accepted_cg(self, rhs: np.ndarray) -> np.ndarray | None:
+        """CG from zero; the solution if it converged to a true residual within the slack."""
+        x, its, reason = self._cg(rhs)
+        self.stats.iterations.append(its)
+        residual = self.true_residual(x, rhs) if reason > 0 else np.inf
+        if reason > 0 and residual <= self.options.residual_slack * self.eta:
+            self.stats.true_residuals.append(residual)
+            return x
+        return None
 
     def _cg(self, rhs: np.ndarray) -> tuple[np.ndarray, int, int]:
         """``(x, iterations, converged reason)`` of one CG solve from x = 0."""

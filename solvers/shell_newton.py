@@ -512,6 +512,7 @@ class ShellNewtonSolver:
         self._factor_age = 0  # iterations served by the current factorisation (0 = none)
         self._refresh = True  # the next iteration must factorise (modified Newton)
         self._mode_now = ""
+        self._target = 0.0  # gradient tolerance of the running solve (multigrid forcing)
 
     def _reuse_next(self) -> bool:
         """Whether the next iteration will try the previous factorisation (modified Newton)."""
@@ -550,6 +551,7 @@ class ShellNewtonSolver:
         opts = self.options
         ev = self._evaluate(x, timers, opts.far_hessian or opts.hessian)
         tol = self._tolerance(_grad_norm(ev))
+        self._target = tol
         switch = opts.switch_rtol * (opts.gradient_scale or _grad_norm(ev))
         if opts.far_hessian and _grad_norm(ev) <= switch:
             ev = self._evaluate(x, timers, opts.hessian)
@@ -626,7 +628,7 @@ class ShellNewtonSolver:
         """
         assert ev.grad is not None  # order >= 1 evaluation
         if self.krylov is not None:
-            self.krylov.set_gradient_norm(float(np.linalg.norm(ev.grad)))
+            self.krylov.set_gradient_norm(float(np.linalg.norm(ev.grad)), self._target)
         cg_before = self._krylov_count()
         if self._reuse_next():
             found = self._direction(x, ev, timers)

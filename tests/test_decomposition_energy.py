@@ -63,6 +63,26 @@ def test_owned_energies_sum_to_w(sphere_case) -> None:
     assert abs(total - w) <= 1e-13 * abs(w)
 
 
+def test_owned_energies_include_the_flip_barrier(sphere_case) -> None:
+    """A face squashed into the barrier's active zone: the owned sums (order 0 and from an
+    order-2 evaluation's elements) still add up to W, barrier included."""
+    problem, energies, x = sphere_case
+    y = x.copy()
+    f = problem.topology.faces[len(problem.topology.faces) // 2]
+    mid = 0.5 * (y[f[0]] + y[f[1]])
+    y[f[2]] = mid + 0.05 * (y[f[2]] - mid)
+    ev = problem.energy().evaluate(y, order=0)
+    assert ev.terms["flip_barrier"] > 1e-6 * abs(ev.value)
+    order0 = from_elements = 0.0
+    for pe in energies:
+        pe.set_state(y)
+        order0 += pe.owned_energy()
+        from_elements += pe.owned_energy(pe.energy.evaluate(y[pe.local], order=2).elements)
+    print(f"W = {ev.value:.15e} (barrier {ev.terms['flip_barrier']:.3e}), owned {order0:.15e}")
+    assert abs(order0 - ev.value) <= 1e-13 * abs(ev.value)
+    assert abs(from_elements - ev.value) <= 1e-13 * abs(ev.value)
+
+
 def test_sliced_rest_equals_recomputed(sphere_case) -> None:
     problem, energies, _ = sphere_case
     for pe in energies:

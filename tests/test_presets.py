@@ -9,7 +9,7 @@ import pytest
 
 from models.errors import InputError
 from solvers.shell_newton import ShellNewtonOptions
-from wrinkles.presets import PRESET_NOTES, PRESETS, apply_quality, preset_keys
+from wrinkles.presets import PRESET_NOTES, PRESET_ROWS, PRESETS, apply_quality, preset_keys
 from wrinkles.scene import Scene, load_scene, scene_dict
 
 REPO = Path(__file__).resolve().parents[1]
@@ -135,3 +135,18 @@ def test_default_scene_is_the_balanced_preset(tmp_path):
     assert 'quality = "balanced"' in DEFAULT.read_text()
     explicit = scene_with(tmp_path, "")
     assert scene_dict(load_scene(DEFAULT)) == scene_dict(load_scene(explicit))
+
+
+def test_every_preset_names_the_sweep_row_that_measured_it():
+    """PRESET_ROWS maps each quality to a row name of benchmarks/speed_accuracy.py's sweep."""
+    import sys
+
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from speed_accuracy import SceneFacts, sweep
+
+    facts = SceneFacts(levels=2, hessian="exact", far_hessian="", rtol=1e-6, h=0.02,
+                       dynamic=False, dt=0.25, steps_per_frame=1, frames=4)
+    names = {c.name for c in sweep([0, 1, 2, 3], facts, None)} | {"reference"}
+    assert set(PRESET_ROWS) == set(PRESETS)
+    assert set(PRESET_ROWS.values()) <= names, set(PRESET_ROWS.values()) - names
+    assert PRESET_ROWS["balanced"] == "base"  # scenes/default.toml is the balanced preset

@@ -40,7 +40,8 @@ from scipy.optimize import minimize_scalar
 from models.errors import InputError
 from models.shell.bending import hinge_weights
 from models.shell.hinge_angle import hinge_angles
-from models.shell.rest import face_areas
+from models.shell.rest import vertex_areas
+from models.shell.topology import unique_edges
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -260,13 +261,6 @@ def line_labels(t: npt.ArrayLike, width: float) -> IntArray:
 # Shell surfaces
 
 
-def vertex_areas(vertices: FloatArray, faces: IntArray) -> FloatArray:
-    """Lumped vertex areas: a third of the area of every incident triangle (as ``RestState``)."""
-    areas = face_areas(vertices, faces)
-    return np.bincount(faces.ravel(), weights=np.repeat(areas / 3.0, 3),
-                       minlength=vertices.shape[0])
-
-
 def normal_heights(x: FloatArray, y: FloatArray, faces: IntArray) -> FloatArray:
     """Out-of-plane displacement ``(x - y) . n_y`` of the shell from its target ``y``."""
     from wrinkles.shell_stage import vertex_normals
@@ -363,12 +357,6 @@ class ArtefactReport:
     ratio: float
     correlation: float
     samples: int
-
-
-def unique_edges(faces: IntArray) -> IntArray:
-    """``(m, 2)`` sorted unique vertex pairs of the triangles' edges."""
-    pairs = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    return np.unique(np.sort(pairs, axis=1), axis=0)
 
 
 def segment_distances(points: FloatArray, a: FloatArray, b: FloatArray,

@@ -45,7 +45,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from models.backend import MPI, PETSc, dolfinx, quadrature_expression, ufl
+from models.backend import MPI, PETSc, dolfinx
 from models.errors import InputError
 from wrinkles.collective import on_root
 
@@ -448,16 +448,14 @@ def summary_document(scene: Mapping[str, Any], run: Mapping[str, Any],
 def worst_cell(body: Any) -> dict[str, Any]:
     """Locate the smallest ``det F`` over the body's volume quadrature points (collective).
 
-    ``det F = det(I + grad u)`` is evaluated at the degree-``qdegree`` points of every owned
-    cell; the global minimum, its cell (global index), quadrature point and the cell's
-    reference centroid are returned on every rank.
+    ``det F = det(I + grad u)`` at the degree-``qdegree`` points of every owned cell comes
+    from :meth:`models.body.Body.det_f_points` (the expression of ``min_det_f``); the global
+    minimum, its cell (global index), quadrature point and the cell's reference centroid are
+    returned on every rank.
     """
     mesh = body.mesh
-    expr = quadrature_expression(ufl.det(body.deformation_gradient()), mesh,
-                                 body.options.qdegree)
     imap = mesh.topology.index_map(mesh.topology.dim)
-    values = expr.eval(mesh, np.arange(imap.size_local, dtype=np.int32))
-    values = np.where(np.isfinite(values), values, -np.inf).reshape(imap.size_local, -1)
+    values = body.det_f_points()
     local = (np.inf, -1, -1, [math.nan] * 3)
     if values.size:
         cell, point = np.unravel_index(int(np.argmin(values)), values.shape)

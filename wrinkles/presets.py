@@ -18,17 +18,22 @@ already has and never switches physics on (a body-only scene with ``quality = "p
 gets no ``[shell]``). ``quality`` itself is consumed by the overlay (it is not a field of
 :class:`wrinkles.scene.Scene`); the resolved scene records the values it chose.
 
-The presets are Pareto points of the speed/accuracy trade measured by
-``benchmarks/speed_accuracy.py`` on ``scenes/default.toml`` (compressed bar with a stiff skin,
-4 frames, one-way coupling) on a coarser body mesh (:data:`MEASURED_RUN`); the measured wall
-time per frame and error against the reference run (shell position RMS at the final frame,
-relative to the reference's RMS displacement; bending energy ``k_B W_B``) are given with each
-preset in :data:`PRESET_NOTES`. At that size every converged 2-level setting on the same
-body mesh lies within 0.22-0.26 of the 3-level reference: the subdivision level (and the
-body mesh, whose surface the shell refines) sets the error, the solver knobs mostly select
-one of several nearby wrinkle branches (compare the wavelengths). ``scenes/default.toml``
-writes ``levels``, ``rtol``, ``max_iterations`` and ``body.degree`` itself, so there these
-keys of a preset do not apply (precedence).
+The presets are points of the speed/accuracy trade measured by
+``benchmarks/speed_accuracy.py`` on ``scenes/default.toml`` at full size (compressed bar
+with a stiff skin, body h = 2 cm, 4 frames, one-way coupling; :data:`MEASURED_RUN`); the
+measured time per frame (process CPU time, the fair figure on the shared machine, and the
+contended wall time) and the errors against the reference run (shell position RMS at the
+final frame relative to the reference's RMS displacement, bending energy ``k_B W_B``,
+wrinkle wavelength) are given with each preset in :data:`PRESET_NOTES`. Two fronts: on the
+position error the 2-level exact solve (``balanced``) is the most accurate 2-level setting
+(only the 3-level Gauss-Newton row is closer, at 6.4x its CPU time), while on the bending
+energy error the error falls with every subdivision level (0.96 / 0.57 / 0.18 / 0.0014 at
+0 / 1 / 2 / 3 levels, exact Hessian). The 3-level P1 shell lands on a
+phase-shifted wrinkle branch (position RMS 0.169, but wavelength within 0.6 % and bending
+energy within 0.14 % of the reference), so the position error alone does not rank the
+levels. The Newton tolerance does not matter with the exact Hessian (rtol 1e-3 to 1e-8:
+the same shell, within 1 % of the time). ``scenes/default.toml`` sets ``quality =
+"balanced"`` and writes none of the preset's keys.
 """
 
 from __future__ import annotations
@@ -64,27 +69,42 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 """Quality name -> dotted scene keys and values (the overlay)."""
 
-MEASURED_RUN = ("benchmarks/speed_accuracy.py --set mesh.params.h=0.05 --levels 0 1 2 "
-                "--ref-levels 3 (benchmarks/results/speed_accuracy.json, 2026-11-22T11:29Z, "
-                "serial, machine shared with other jobs: timings contended)")
-"""The run the numbers of :data:`PRESET_NOTES` come from: ``scenes/default.toml`` on a
-coarser body mesh (h = 5 cm instead of 2 cm, so 38 / 146 / 578 / 2306 shell vertices at
-0 / 1 / 2 / 3 levels), 4 frames; reference: 3 levels, P2 body, exact Hessian, rtol 1e-8,
-wrinkle wavelength 2.75 cm (:func:`wrinkles.measure.shell_wavelength`)."""
+MEASURED_RUN = ("python benchmarks/speed_accuracy.py --resume --budget 50 "
+                "(benchmarks/results/speed_accuracy.json, 2026-11-22T13:25-14:06Z, and the "
+                "row L3+gauss_newton+rtol=0.001 14:23-14:29Z by --resume --only combo; serial, "
+                "machine shared with other jobs: 1-minute load 3.7-7.7 on 2 cores, wall "
+                "times about 3x the CPU times)")
+"""The run the numbers of :data:`PRESET_NOTES` come from: ``scenes/default.toml`` as it is
+(h = 2 cm, so 165 / 654 / 2610 / 10434 shell vertices at 0 / 1 / 2 / 3 levels), 4 frames;
+reference: 3 levels, P2 body, exact Hessian, rtol 1e-8, 10434 vertices, 42.2 s/frame CPU
+(125 s/frame wall), wrinkle wavelength 2.18 cm (:func:`wrinkles.measure.shell_wavelength`).
+The earlier coarse-body sweep (h = 5 cm, session 2) chose the same presets."""
+
+PRESET_ROWS: dict[str, str] = {"preview": "levels=1", "balanced": "base", "final": "reference"}
+"""Quality name -> the row of :data:`MEASURED_RUN`'s JSON that measured the preset ("base" is
+the scene's own settings, i.e. ``balanced``; "reference" the reference run). The benchmark
+copies this map into its JSON (``presets``) and ``make paper`` tabulates those rows."""
 
 PRESET_NOTES: dict[str, str] = {
-    "preview": "0.067 s/frame (0.27 s for 4 frames), 146 vertices; shell position RMS error "
-               "0.256 of the reference RMS displacement (max 6.2 mm), bending energy 94 % "
-               "below the reference; no wavelength measurable (a 1-level shell cannot "
-               "resolve the 2.75 cm wrinkles)",
-    "balanced": "1.30 s/frame (5.2 s for 4 frames), 578 vertices; RMS error 0.245 (max "
-                "8.5 mm), bending energy error 45 %, wavelength 2.81 cm (2.2 % error); row "
-                "'base'. The Gauss-Newton Hessian has a smaller RMS error (0.225) but a 19 % "
-                "wavelength error, costs 2.17 s/frame there and 35.8 against 24.7 s/frame "
-                "(exact) on the full default scene (h = 2 cm; benchmarks/profile_frame.py "
-                "--set quality=balanced before the preset chose exact; contended)",
-    "final": "the reference settings: 15.4 s/frame, 2306 vertices (error 0 by construction; "
-             "not compared with a finer run)",
+    "preview": "row 'levels=1': 0.41 s/frame CPU (1.26 s/frame wall, contended), 654 "
+               "vertices; shell position RMS error 0.198 of the reference RMS displacement "
+               "(max 8.3 mm), bending energy error 57 %, wavelength 2.01 cm (7.9 % error); on "
+               "both Pareto fronts",
+    "balanced": "row 'base': 5.74 s/frame CPU (17.5 s/frame wall, contended), 2610 "
+                "vertices; RMS error 0.135 (max 5.2 mm), the lowest at 2 levels; bending "
+                "energy error 18 %, wavelength 2.05 cm (6.0 % error). A measured cheaper "
+                "point on both fronts: the Gauss-Newton Hessian with rtol 1e-3 ('L2+gauss_"
+                "newton+rtol=0.001'), 1.90 s/frame CPU (3.0x less), RMS error 0.146, bending "
+                "energy error 15.5 %, wavelength error 9.0 %: worse positions and wavelength, "
+                "so not the preset (set it with --set for speed). Gauss-Newton at rtol 1e-6 "
+                "did not converge in 300 iterations (826 over 4 frames)",
+    "final": "row 'reference' (the reference settings): 42.2 s/frame CPU (125 s/frame "
+             "wall, contended), 10434 vertices; error 0 by construction (not compared with a "
+             "finer run). The 3-level P1 shell at rtol 1e-6 ('levels=3') costs 37.4 s/frame "
+             "CPU with bending energy error 0.14 % and wavelength error 0.6 %; with the "
+             "Gauss-Newton Hessian at rtol 1e-3 ('L3+gauss_newton+rtol=0.001') 36.6 s/frame "
+             "CPU, RMS error 0.128 (the lowest of the sweep), bending energy error 3.5 %: "
+             "neither is much cheaper than the reference",
 }
 """Quality name -> measured time per frame and error of the preset (:data:`MEASURED_RUN`)."""
 
@@ -158,5 +178,5 @@ def apply_quality(doc: dict[str, Any], where: str = "<dict>") -> list[str]:
     return applied
 
 
-__all__ = ["MEASURED_RUN", "PRESETS", "PRESET_NOTES", "QUALITY_KEY", "apply_quality",
-           "preset_keys"]
+__all__ = ["MEASURED_RUN", "PRESETS", "PRESET_NOTES", "PRESET_ROWS", "QUALITY_KEY",
+           "apply_quality", "preset_keys"]

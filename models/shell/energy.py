@@ -128,6 +128,8 @@ class ShellEval:
         terms: Energy of each active term: keys among "membrane_edge", "membrane_area",
             "bending", "penalty", "flip_barrier" (stiffness included; the barrier is +inf when
             a face is collapsed or turned over).
+        elements: Energy of each stencil of each active term (same keys; edges, faces,
+            hinges, clusters or barrier faces in the order the energy holds them).
 
     """
 
@@ -136,6 +138,7 @@ class ShellEval:
     hess: sp.csr_matrix | None
     penalty_factor: sp.csr_matrix | None
     terms: dict[str, float] = field(default_factory=dict)
+    elements: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 class ShellEnergy:
@@ -303,7 +306,9 @@ class ShellEnergy:
         hess = self._assemble(evals, data) if data is not None else None
         return ShellEval(value=float(sum(ev.value for ev in evals.values())), grad=grad,
                          hess=hess, penalty_factor=self._factor if order >= 2 else None,
-                         terms={name: ev.value for name, ev in evals.items()})
+                         terms={name: ev.value for name, ev in evals.items()},
+                         elements={name: ev.element_values for name, ev in evals.items()
+                                   if ev.element_values is not None})
 
     def _assemble(self, evals: dict[str, TermEval], data: np.ndarray) -> sp.csr_matrix:
         """Add the stored local blocks to ``data`` and wrap it as the Hessian.

@@ -107,11 +107,20 @@ class RestState:
         _check_degenerate(x, topology.faces, areas)
         _check_quality(x, topology.faces, min_quality)
         e = x[topology.edges[:, 1]] - x[topology.edges[:, 0]]
-        vertex_areas = np.bincount(topology.faces.ravel(), weights=np.repeat(areas / 3.0, 3),
-                                   minlength=topology.n_vertices)
         return cls(positions=x.copy(), rest_lengths=np.linalg.norm(e, axis=1),
                    rest_areas=areas, rest_angles=hinge_angles(x, topology.hinges),
-                   hinge_weights=hinge_weights(x, topology.hinges), vertex_areas=vertex_areas)
+                   hinge_weights=hinge_weights(x, topology.hinges),
+                   vertex_areas=vertex_areas(x, topology.faces, areas))
+
+
+def vertex_areas(x: np.ndarray, faces: np.ndarray,
+                 areas: np.ndarray | None = None) -> np.ndarray:
+    """Lumped vertex areas ``sum_{f ni v} A_f / 3`` (n,) (0 for an isolated vertex).
+
+    ``areas`` are the faces' areas when already known (else :func:`face_areas` of ``x``).
+    """
+    a = face_areas(x, faces) if areas is None else areas
+    return np.bincount(np.ravel(faces), weights=np.repeat(a / 3.0, 3), minlength=x.shape[0])
 
 
 def face_normals(x: np.ndarray, faces: np.ndarray) -> np.ndarray:

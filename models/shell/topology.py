@@ -94,20 +94,47 @@ class ShellTopology:
 
         """
         f = _check_faces(faces, n_vertices)
-        he_from, he_to = f.reshape(-1), np.roll(f, -1, axis=1).reshape(-1)
-        lo, hi = np.minimum(he_from, he_to), np.maximum(he_from, he_to)
-        keys, he_edge, counts = np.unique(lo * n_vertices + hi, return_inverse=True,
-                                          return_counts=True)
-        _check_manifold(keys, counts, n_vertices)
+        he_from, he_to = _half_edges(f)
+        edges, he_edge, counts = _edge_index(f, n_vertices)
+        _check_manifold(edges, counts)
         forward = he_from < he_to
         _check_orientation(he_edge, forward, counts, he_from, he_to)
-        edges = np.column_stack([keys // n_vertices, keys % n_vertices]).astype(np.int64)
-        edge_faces = _edge_faces(he_edge, forward, len(keys))
+        edge_faces = _edge_faces(he_edge, forward, len(edges))
         hinges, hinge_edge = _hinges(f, edges, edge_faces)
         return cls(n_vertices=int(n_vertices), faces=f, edges=edges, edge_faces=edge_faces,
                    face_edges=he_edge.reshape(-1, 3).astype(np.int64), hinges=hinges,
                    hinge_edge=hinge_edge,
                    boundary_edges=np.flatnonzero(edge_faces[:, 1] < 0).astype(np.int64))
+
+
+def unique_edges(faces: np.ndarray) -> np.ndarray:
+    """(E, 2) int64 unique edges ``i < j`` of triangles, lexicographically sorted.
+
+    The same edges, in the same order, as :attr:`ShellTopology.edges`, without the
+    manifold / orientation checks (any triangle soup).
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    return _edge_index(f, int(f.max()) + 1 if f.size else 0)[0]
+
+
+def _half_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Start and end vertices of the half-edges ``3 f + a``: ``faces[f, a] -> faces[f, a+1]``."""
+    return faces.reshape(-1), np.roll(faces, -1, axis=1).reshape(-1)
+
+
+def _edge_index(faces: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Find the undirected edges of the half-edges (numbered by the key ``min * n + max``).
+
+    Returns:
+        ``edges`` (E, 2) int64 with i < j, lexicographically sorted; ``he_edge`` (3F,) the
+        edge of each half-edge; ``counts`` (E,) the number of half-edges on each edge.
+
+    """
+    he_from, he_to = _half_edges(faces)
+    lo, hi = np.minimum(he_from, he_to), np.maximum(he_from, he_to)
+    keys, he_edge, counts = np.unique(lo * n + hi, return_inverse=True, return_counts=True)
+    edges = np.column_stack([keys // n, keys % n]).astype(np.int64)
+    return edges, he_edge.reshape(-1), counts
 
 
 def _check_faces(faces: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -144,12 +171,12 @@ def _check_orientation(he_edge: np.ndarray, forward: np.ndarray, counts: np.ndar
                          f"(both traverse edge {he_from[h0]}->{he_to[h0]})")
 
 
-def _check_manifold(keys: np.ndarray, counts: np.ndarray, n: int) -> None:
+def _check_manifold(edges: np.ndarray, counts: np.ndarray) -> None:
     """Raise naming the first edge shared by three or more faces."""
     bad = np.flatnonzero(counts > 2)
     if bad.size:
-        k = keys[bad[0]]
-        raise InputError(f"faces: non-manifold edge ({k // n}, {k % n}) is shared by "
+        i, j = edges[bad[0]]
+        raise InputError(f"faces: non-manifold edge ({i}, {j}) is shared by "
                          f"{counts[bad[0]]} faces")
 
 

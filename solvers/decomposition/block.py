@@ -18,6 +18,12 @@ over patches and workers; the outer loop stops when ``||grad W|| <= atol + rtol 
 Inner solves are inexact: patch P stops at ``||grad_P|| <= max(eta ||grad W_k||,
 inner_floor * tol) / sqrt(#patches)`` (forcing term eta, as in inexact Newton).
 
+A wall-time cap (``max_seconds``) stops the outer loop unconverged after the first outer
+iteration that ends more than ``max_seconds`` after the solve started. The decision is
+collective: every worker's "over time" flag is summed through the exchange once per outer
+iteration (only when the cap is finite), so all workers stop after the same iteration even
+though their clocks differ.
+
 The exchange between workers is an :class:`Exchange` (serial: nothing to send;
 :mod:`.parallel`: MPI client-server or neighbour-to-neighbour). Every exchange also agrees on
 errors: a worker whose patch solve raised passes the message, and every worker raises
@@ -38,6 +44,7 @@ from solvers.decomposition.patch_energy import PatchEnergy
 from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver
 
 Method = Literal["jacobi", "gauss_seidel"]
+StopReason = Literal["tolerance", "max_outer", "max_seconds"]
 
 
 @dataclass(frozen=True)
@@ -57,6 +64,10 @@ class BlockOptions:
         anderson: Anderson acceleration depth m of the outer fixed-point iteration (0 = off).
         min_damping: Smallest step fraction alpha of the damped (backtracked) outer step.
         fail_patch: Test hook: the patch whose solve raises SolverError (-1 = none).
+        max_seconds: Wall-time cap (s) of the outer loop, measured from the start of
+            :meth:`BlockSolver.solve` (patch set-up excluded): the loop stops unconverged after
+            the first outer iteration that ends later on any worker (inf = no cap; a finite
+            cap costs one extra scalar reduction per outer iteration).
 
     """
 
@@ -71,6 +82,7 @@ class BlockOptions:
     anderson: int = 5
     min_damping: float = 1e-3
     fail_patch: int = -1
+    max_seconds: float = float("inf")
 
     def __post_init__(self) -> None:
         if self.method not in ("jacobi", "gauss_seidel"):
@@ -93,6 +105,8 @@ class BlockOptions:
         if not 0 < self.inner_floor <= 1:
             raise InputError(f"BlockOptions.inner_floor: must be in (0, 1], got "
                              f"{self.inner_floor}")
+        if not self.max_seconds > 0:  # also refuses NaN; inf means no cap
+            raise InputError(f"BlockOptions.max_seconds: must be > 0, got {self.max_seconds}")
 
 
 @dataclass(frozen=True)
@@ -113,6 +127,8 @@ class BlockReport:
         time_solve: Seconds in this worker's patch solves.
         time_exchange: Seconds in exchanges (communication and waiting for other workers).
         time_total: Wall time.
+        stopped_by: Why the outer loop ended: "tolerance" (converged), "max_outer" or
+            "max_seconds".
 
     """
 
@@ -129,6 +145,7 @@ class BlockReport:
     time_solve: float
     time_exchange: float
     time_total: float
+    stopped_by: StopReason
 
 
 class Exchange(Protocol):
@@ -327,10 +344,26 @@ class BlockSolver:
             return self._global_gradient(x, tally)
         return g_mixed
 
+    def _out_of_time(self, tally: _Tally) -> bool:
+        """Tell every worker alike whether any worker is past ``max_seconds`` (collective).
+
+        One scalar reduction (the count of workers over time), skipped when there is no cap,
+        so every worker takes the same decision after the same outer iteration.
+        """
+        if not np.isfinite(self.options.max_seconds):
+            return False
+        over = float(time.perf_counter() - tally.start > self.options.max_seconds)
+        start = time.perf_counter()
+        count = float(self.exchange.agree(np.array([over]), None)[0])
+        tally.exchange += time.perf_counter() - start
+        return count > 0
+
     def solve(self, x0: np.ndarray) -> tuple[np.ndarray, BlockReport]:
         """Run the outer iteration from x0 (n, 3); return ``(x, report)``.
 
-        x is this worker's copy: owned and halo values up to date (the caller gathers).
+        Stops at the global tolerance, after ``max_outer`` iterations or (collectively) past
+        ``max_seconds``. x is this worker's copy: owned and halo values up to date (the
+        caller gathers).
         """
         x, tally = np.array(x0, dtype=np.float64), _Tally()
         history: list[float] = []
@@ -338,15 +371,20 @@ class BlockSolver:
         tol = self.options.atol + self.options.rtol * (self.options.gradient_scale or g)
         n_patches = float(self.exchange.agree(np.array([len(self.patches)], float), None)[0])
         anderson = _Anderson(self.options.anderson)
-        while g > tol and len(history) < self.options.max_outer:
+        timed_out = False
+        while g > tol and len(history) < self.options.max_outer and not timed_out:
             history.append(g)
             g = self._outer_step(x, g, tol, n_patches, anderson, tally)
+            timed_out = self._out_of_time(tally)
+        stopped: StopReason = ("tolerance" if g <= tol else
+                               "max_seconds" if timed_out else "max_outer")
         return x, BlockReport(
             converged=g <= tol, outer_iterations=len(history), grad_norm=g, tolerance=tol,
             grad_history=(*history, g), inner_iterations=tally.inner,
             exchanges=tally.exchanges, colours=self.n_colours, damped_steps=tally.damped,
             rejected_mixing=tally.rejected, time_solve=tally.solve,
-            time_exchange=tally.exchange, time_total=time.perf_counter() - tally.start)
+            time_exchange=tally.exchange, time_total=time.perf_counter() - tally.start,
+            stopped_by=stopped)
 
 
 class _Anderson:
@@ -384,6 +422,39 @@ class _Anderson:
         gram, rhs = total[: m * m].reshape(m, m), total[m * m:]
         gamma = np.linalg.lstsq(gram, rhs, rcond=1e-12)[0]
         return after - np.diff(np.array(self.g), axis=0).T @ gamma
+
+
+def extrapolate_outer(history: Sequence[float], tolerance: float) -> tuple[float, float]:
+    """Fitted convergence rate of an outer iteration and the outer iterations it would need.
+
+    Fits ``log10 ||g_k|| = a + s k`` (least squares, ``np.polyfit``) over the last half of the
+    history (k = n/2 .. n, at least 3 points; the early, pre-asymptotic iterations are left
+    out) and continues the line from the last value: ``n + (log10 tol - log10 ||g_n||) / s``.
+    This is an extrapolation, not a measurement (a linear rate of the block fixed-point
+    iteration is assumed to persist).
+
+    Args:
+        history: ``BlockReport.grad_history`` (``||g||`` before each outer iteration and at
+            the end; n + 1 values for n outer iterations).
+        tolerance: The global gradient tolerance.
+
+    Returns:
+        ``(rate, outer)``: the reduction factor of ``||g||`` per outer iteration (``10^s``) and
+        the extrapolated total outer iterations; ``outer = n`` when already converged, inf when
+        the fitted rate is >= 1, NaN for fewer than 3 points to fit.
+
+    """
+    g = np.asarray(history, dtype=np.float64)
+    n = g.size - 1
+    if g[-1] <= tolerance:
+        return float("nan"), float(n)
+    k = np.arange(n // 2, n + 1)
+    if k.size < 3:
+        return float("nan"), float("nan")
+    slope = float(np.polyfit(k, np.log10(g[k]), 1)[0])
+    if slope >= 0:
+        return float(10.0**slope), float("inf")
+    return float(10.0**slope), float(n + (np.log10(tolerance) - np.log10(g[-1])) / slope)
 
 
 def _noise(w: float) -> float:

@@ -29,7 +29,14 @@ import scipy.sparse as sp
 
 from models.backend import MPI, PETSc
 from models.errors import InputError
-from solvers.linear import FactorReport, LinearSolverOptions, setup_pc
+from solvers.linear import (
+    FactorReport,
+    LinearSolverOptions,
+    coo_aij,
+    factor_ksp,
+    factor_status,
+    setup_pc,
+)
 from solvers.shell_newton import (
     EnergyEval,
     ShellEnergyLike,
@@ -73,12 +80,7 @@ class DistributedLinearSystem:
         rows = np.repeat(np.arange(r0, r1), np.diff(hess.indptr[r0: r1 + 1]))
         cols = hess.indices[self._slice]
         self._diag = np.flatnonzero(rows == cols)
-        n = hess.shape[0]
-        mat: Any = PETSc.Mat().create(comm=self.comm)
-        mat.setSizes(((r1 - r0, n), (r1 - r0, n)))
-        mat.setType(PETSc.Mat.Type.AIJ)
-        mat.setPreallocationCOO(rows.astype(PETSc.IntType), cols.astype(PETSc.IntType))
-        mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        mat = coo_aij(self.comm, r1 - r0, hess.shape[0], rows, cols)
         mat.setOption(PETSc.Mat.Option.SPD, self.options.symmetric == "cholesky")
         self.mat = mat
         self.ksp = self._create_ksp()
@@ -86,14 +88,14 @@ class DistributedLinearSystem:
         self.rhs, self.sol = vecs
 
     def _create_ksp(self) -> Any:
-        """KSPPREONLY with PCFactor of the chosen backend."""
-        ksp = PETSc.KSP().create(comm=self.comm)
-        ksp.setOperators(self.mat)
-        ksp.setType(PETSc.KSP.Type.PREONLY)
-        pc = ksp.getPC()
-        pc.setType("lu" if self.options.symmetric == "lu" else "cholesky")
-        pc.setFactorSolverType(self.options.backend)
-        return ksp
+        """KSPPREONLY with PCFactor of the chosen backend.
+
+        MUMPS gets the options' controls (ordering, BLR, refinement) and ICNTL(13) = 1: no
+        ScaLAPACK on the root front, whose pivots INFOG(12) would not count, so the inertia
+        test sees every negative eigenvalue on more than one rank (as the split solve).
+        """
+        icntl = ((13, 1),) if self.options.backend == "mumps" else None
+        return factor_ksp(self.mat, self.options, self.comm, mumps_icntl=icntl)
 
     def factorize(self, ev: EnergyEval, tau: float) -> FactorReport:
         """Insert this rank's rows of ``A + tau I`` and factorise in parallel."""
@@ -107,29 +109,18 @@ class DistributedLinearSystem:
         self.mat.setValuesCOO(values)
         first = self._times[0] == 0.0
         pc = self.ksp.getPC()
-        failed, _, elapsed = setup_pc(pc)
+        failed, error, elapsed = setup_pc(pc)
         self._times[0] += elapsed
         self._times[1] += elapsed if first else 0.0
-        report = self._report(pc, failed, tau, elapsed)
+        success, negatives, reason = factor_status(pc, failed, error, self.options)
+        report = FactorReport(success=success, reason=reason, negative_pivots=negatives,
+                              numeric_time=elapsed, shift=float(tau))
         if not report.success:
             # the factor keeps its error flag and PCSetUp would skip every later numeric
             # factorisation (all shifted retries failed at 10k vertices): start a fresh KSP
             self.ksp.destroy()
             self.ksp = self._create_ksp()
         return report
-
-    def _report(self, pc: Any, failed: int, tau: float, elapsed: float) -> FactorReport:
-        """FactorReport with MUMPS INFOG(1) / INFOG(12) when available."""
-        negatives, reason = None, "ok" if failed == 0 else f"PCFailedReason {failed}"
-        if failed != -1 and self.options.backend == "mumps":
-            factor = pc.getFactorMatrix()
-            infog1 = factor.getMumpsInfog(1)
-            if infog1 < 0:
-                failed, reason = 1, f"MUMPS INFOG(1)={infog1}"
-            elif self.options.symmetric != "lu":
-                negatives = int(factor.getMumpsInfog(12))
-        return FactorReport(success=failed == 0, reason=reason, negative_pivots=negatives,
-                            numeric_time=elapsed, shift=float(tau))
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """Solve with the last factorisation; the full solution on every rank."""

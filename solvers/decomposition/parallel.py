@@ -14,6 +14,8 @@ Every rank builds the same :class:`PatchSet` (deterministic), keeps the patches 
 
 Either way every rank learns about a failed patch solve at the next exchange and raises the
 same :class:`SolverError`, so no rank is left waiting (entry points turn it into exit code 2).
+The wall-time cap ``BlockOptions.max_seconds`` is agreed through the same reduction
+(``agree``: one scalar per outer iteration), so all ranks stop after the same outer iteration.
 """
 
 from __future__ import annotations

@@ -25,11 +25,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from models.errors import InputError
-from models.shell.bending import hinge_bending
 from models.shell.dofs import check_positions
 from models.shell.energy import ShellEnergy, ShellEval, ShellParams
-from models.shell.membrane import area_membrane, edge_membrane
-from models.shell.penalty import PenaltyOperator, penalty_term
 from models.shell.rest import RestState
 from models.shell.topology import ShellTopology
 
@@ -113,6 +110,11 @@ def slice_rest(problem: ShellProblem, local: np.ndarray, faces: np.ndarray,
                      hinge_weights=r.hinge_weights[gh], vertex_areas=r.vertex_areas[local])
 
 
+_OWNED_KIND = {"membrane_edge": "edges", "membrane_area": "faces", "bending": "hinges",
+               "penalty": "rows", "flip_barrier": "flip_faces"}
+"""Stencil kind of each term counted in the owned energy."""
+
+
 class PatchEnergy:
     """``x_I -> W(x_I, x_fixed)`` for one owned set I (the ShellEnergy interface, n = |I|).
 
@@ -174,34 +176,30 @@ class PatchEnergy:
         topo = self.energy.topology
         out = {"edges": self._is_owned(topo.edges), "faces": self._is_owned(topo.faces),
                "hinges": self._is_owned(topo.hinges)}
+        out["flip_faces"] = out["faces"][self.energy.flip_faces]
         if h_rows is not None:
             first = np.minimum.reduceat(h_rows.indices, h_rows.indptr[:-1])
             out["rows"] = np.isin(first, self.interior)
         return out
 
-    def owned_energy(self) -> float:
+    def owned_energy(self, elements: dict[str, np.ndarray] | None = None) -> float:
         """Energy of the stencils assigned to this patch at the current state.
 
         Summed over all patches this is exactly W(x) (every stencil counted once), which
         makes global energy comparisons (line search, safeguards) a scalar reduction.
+        ``elements``: the per-stencil energies (:attr:`ShellEval.elements`) of an evaluation
+        of :attr:`energy` at the current state; their owned entries are summed (no second
+        pass over the stencils). Without it the local energy is evaluated (order 0).
         """
-        e, p, r, x, m = (self.energy, self.energy.params, self.energy.rest, self._x,
-                         self._owned_terms)
-        total = 0.0
-        if p.k_L > 0 and m["edges"].any():
-            total += edge_membrane(x, e.topology.edges[m["edges"]], r.rest_lengths[m["edges"]],
-                                   order=0, stiffness=p.k_L).value
-        if p.k_A > 0 and m["faces"].any():
-            total += area_membrane(x, e.topology.faces[m["faces"]], r.rest_areas[m["faces"]],
-                                   order=0, stiffness=p.k_A).value
-        if p.k_B > 0 and m["hinges"].any():
-            h = m["hinges"]
-            total += hinge_bending(x, e.topology.hinges[h], r.rest_angles[h],
-                                   p.k_B * r.hinge_weights[h], order=0).value
-        if self._h_local is not None and m["rows"].any():
-            op = PenaltyOperator.from_matrix(self._h_local[m["rows"]], self.local.size)
-            total += penalty_term(x, e.target, op, order=0, stiffness=p.k_P).value
-        return float(total)
+        if elements is None:
+            elements = self.energy.evaluate(self._x, order=0).elements
+        return self._owned_sum(elements)
+
+    def _owned_sum(self, elements: dict[str, np.ndarray]) -> float:
+        """Sum of the owned entries of the per-stencil energies (+inf if not finite)."""
+        total = sum(float(elements[term][self._owned_terms[kind]].sum())
+                    for term, kind in _OWNED_KIND.items() if term in elements)
+        return float(total) if np.isfinite(total) else np.inf
 
     @property
     def n_vertices(self) -> int:

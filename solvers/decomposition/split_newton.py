@@ -46,11 +46,16 @@ from models.shell.energy import ShellEval
 from models.shell.penalty import PenaltyOperator, penalty_factor
 from solvers.decomposition.patch_energy import PatchEnergy, ShellProblem
 from solvers.decomposition.patches import merge_partition
-from solvers.linear import FactorReport, LinearSolverOptions, set_mumps_controls, setup_pc
+from solvers.linear import (
+    FactorReport,
+    LinearSolverOptions,
+    coo_aij,
+    factor_event_totals,
+    factor_ksp,
+    factor_status,
+    setup_pc,
+)
 from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver, ShellSolveReport
-
-_SYMBOLIC_EVENTS = {"lu": "MatLUFactorSym", "cholesky": "MatCholFctrSym",
-                    "ldlt": "MatCholFctrSym"}
 
 
 def rank_of_vertices(problem: ShellProblem, partition: np.ndarray | None,
@@ -183,17 +188,24 @@ class SplitShellEnergy:
         """Local positions (owned, then halo) from the global x (n, 3)."""
         return np.asarray(x, dtype=np.float64).reshape(-1, 3)[self.patch.local]
 
-    def value(self, x: np.ndarray) -> float:
-        """``W(x) = sum_r`` (energy of rank r's owned stencils), reduced over ranks."""
+    def value(self, x: np.ndarray, elements: dict[str, np.ndarray] | None = None) -> float:
+        """``W(x) = sum_r`` (energy of rank r's owned stencils), reduced over ranks.
+
+        ``elements``: per-stencil energies of the local energy at ``x`` when already
+        evaluated (:meth:`PatchEnergy.owned_energy`).
+        """
         self.patch.set_state(np.asarray(x, dtype=np.float64).reshape(-1, 3))
-        return float(self.comm.allreduce(self.patch.owned_energy(), op=MPI.SUM))
+        return float(self.comm.allreduce(self.patch.owned_energy(elements), op=MPI.SUM))
 
     def evaluate(self, x: np.ndarray, order: int = 2, hessian: str | None = None) -> ShellEval:
-        """Reduced value, full gradient (allgathered) and this rank's Hessian rows."""
+        """Reduced value, full gradient (allgathered) and this rank's Hessian rows.
+
+        The value is the owned share of the same local evaluation (one pass).
+        """
         xl = self._local_x(x)
         ev = self.patch.energy.evaluate(xl, order, hessian)  # type: ignore[arg-type]
         m = self.patch.n_free_dofs
-        value = self.value(x)
+        value = self.value(x, ev.elements)
         grad = self.allgather_owned(ev.grad[:m]) if ev.grad is not None else None
         hess = None
         if ev.hess is not None:
@@ -296,12 +308,7 @@ class SplitAugmentedSystem:
         offsets = self.energy.layout.offsets
         r = self.energy.comm.rank
         local, total = int(offsets[r + 1] - offsets[r]), int(offsets[-1])
-        mat: Any = PETSc.Mat().create(comm=self.energy.comm)
-        mat.setSizes(((local, total), (local, total)))
-        mat.setType(PETSc.Mat.Type.AIJ)
-        mat.setPreallocationCOO(self._coo.rows.astype(PETSc.IntType),
-                                self._coo.cols.astype(PETSc.IntType))
-        mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        mat = coo_aij(self.energy.comm, local, total, self._coo.rows, self._coo.cols)
         self.mat, self.local_nnz = mat, int(self._coo.rows.size)
         self._values = np.zeros(self._coo.rows.size, dtype=PETSc.ScalarType)
         self._values[self._coo.n_hess:] = self._coo.fixed
@@ -309,20 +316,12 @@ class SplitAugmentedSystem:
         self.rhs, self.sol = mat.createVecs()
 
     def _create_ksp(self) -> Any:
-        """KSPPREONLY + PCFactor(MUMPS), controls set on the factor matrix."""
-        ksp = PETSc.KSP().create(comm=self.energy.comm)
-        ksp.setOperators(self.mat)
-        ksp.setType(PETSc.KSP.Type.PREONLY)
-        pc = ksp.getPC()
-        pc.setType("lu" if self.options.symmetric == "lu" else "cholesky")
-        pc.setFactorSolverType("mumps")
-        pc.setFactorSetUpSolverType()
-        factor = pc.getFactorMatrix()
-        # ICNTL(13) = 1: no ScaLAPACK on the root front, whose pivots INFOG(12) would not
-        # count (the inertia test would miss negative eigenvalues on more than one rank)
-        factor.setMumpsIcntl(13, 1)
-        set_mumps_controls(factor, self.options)
-        return ksp
+        """KSPPREONLY + PCFactor(MUMPS), controls set on the factor matrix.
+
+        ICNTL(13) = 1: no ScaLAPACK on the root front, whose pivots INFOG(12) would not count
+        (the inertia test would miss negative eigenvalues on more than one rank).
+        """
+        return factor_ksp(self.mat, self.options, self.energy.comm, mumps_icntl=((13, 1),))
 
     def factorize(self, ev: Any, tau: float) -> FactorReport:
         """Insert this rank's rows of the augmented matrix with ``A + tau I``; factorise."""
@@ -340,35 +339,30 @@ class SplitAugmentedSystem:
 
     def _symbolic_count(self) -> int:
         """Symbolic factorisations logged by PETSc so far."""
-        name = _SYMBOLIC_EVENTS[self.options.symmetric]
-        return int(PETSc.Log.Event(name).getPerfInfo()["count"])
+        return int(factor_event_totals(self.options.symmetric)[0][1])
 
     def _factor(self, tau: float) -> FactorReport:
         """PCSetUp (numeric, symbolic the first time); MUMPS INFOG(1) / INFOG(12)."""
         pc, before = self.ksp.getPC(), self._symbolic_count()
-        failed, _, elapsed = setup_pc(pc)
+        failed, error, elapsed = setup_pc(pc)
         self.analyses += self._symbolic_count() - before
         first = self._times[0] == 0.0
         self._times[0] += elapsed
         self._times[1] += elapsed if first else 0.0
-        report = self._report(pc, failed, tau, elapsed)
+        report = self._report(pc, failed, error, tau, elapsed)
         if not report.success:  # the factor keeps its error flag: start from a fresh KSP
             self.ksp.destroy()
             self.ksp = self._create_ksp()
         return report
 
-    def _report(self, pc: Any, failed: int, tau: float, elapsed: float) -> FactorReport:
+    def _report(self, pc: Any, failed: int, error: str, tau: float,
+                elapsed: float) -> FactorReport:
         """FactorReport with the inertia count against the 3c expected negative pivots."""
-        negatives, reason = None, "ok" if failed == 0 else f"PCFailedReason {failed}"
+        success, negatives, reason = factor_status(pc, failed, error, self.options)
         if failed != -1:
             factor = pc.getFactorMatrix()
-            infog1 = int(factor.getMumpsInfog(1))
             self.memory_mb = (float(factor.getMumpsInfog(21)), float(factor.getMumpsInfog(22)))
-            if infog1 < 0:
-                failed, reason = 1, f"MUMPS INFOG(1)={infog1}"
-            elif self.options.symmetric != "lu":
-                negatives = int(factor.getMumpsInfog(12))
-        return FactorReport(success=failed == 0, reason=reason, negative_pivots=negatives,
+        return FactorReport(success=success, reason=reason, negative_pivots=negatives,
                             expected_negative=self.expected_negative, numeric_time=elapsed,
                             shift=float(tau))
 

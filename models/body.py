@@ -418,10 +418,7 @@ class Body:
         solver). Non-finite values are returned as ``-inf``, never mistaken for an admissible
         state. Shape ``(owned cells, quadrature points)``.
         """
-        n_local = self.mesh.topology.index_map(self.mesh.topology.dim).size_local
-        cells = np.arange(n_local, dtype=np.int32)
-        values = self._static_solver._det_f.eval(self.mesh, cells)
-        return np.where(np.isfinite(values), values, -np.inf).reshape(n_local, -1)
+        return self._static_solver.det_f_points()
 
     def reaction_force(self, index: int = 0) -> np.ndarray:
         """Force exerted by obstacle ``index`` on the body [N] (the obstacle feels minus it).

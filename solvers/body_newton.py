@@ -314,6 +314,15 @@ class EnergyNewton:
         """Minimum of ``det F(u)`` over all quadrature points of all cells and ranks."""
         return global_min_on_cells(self._det_f, self._mesh)
 
+    def det_f_points(self) -> np.ndarray:
+        """``det F(u)`` at the quadrature points of this rank's owned cells, (cells, points).
+
+        The expression behind :meth:`min_det_f`; non-finite values come back as ``-inf``.
+        """
+        n_local = self._mesh.topology.index_map(self._mesh.topology.dim).size_local
+        values = self._det_f.eval(self._mesh, np.arange(n_local, dtype=np.int32))
+        return np.where(np.isfinite(values), values, -np.inf).reshape(n_local, -1)
+
     def _objective(self, _snes: Any, x: Any) -> float:
         """SNES objective: copy ``x`` into ``u`` (with ghosts) and return ``Pi(u)``."""
         x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)

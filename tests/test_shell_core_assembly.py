@@ -9,7 +9,7 @@ from test_shell_core_taylor import random_shell
 
 from meshes.shells import perturb
 from models.errors import InputError
-from models.shell.assembly import StencilPattern, assemble
+from models.shell.assembly import StencilPattern, assemble, sorted_unique
 from models.shell.dofs import stencil_dofs
 from models.shell.energy import ShellEnergy, ShellParams
 
@@ -69,3 +69,11 @@ def test_block_shape_is_checked(rng: np.random.Generator) -> None:
         assemble(pattern, [(pattern.maps[0], rng.standard_normal((top.n_edges, 9, 9)))])
     with pytest.raises(InputError, match="stencils"):
         StencilPattern.from_stencils([top.edges + top.n_vertices], top.n_vertices)
+
+
+def test_sorted_unique_equals_np_unique() -> None:
+    """The pattern's key de-duplication gives np.unique's result (random, repeated, empty)."""
+    rng = np.random.default_rng(3)
+    for keys in (rng.integers(0, 50, 1000), rng.integers(0, 10**12, 5000),
+                 np.zeros(7, dtype=np.int64), np.zeros(0, dtype=np.int64)):
+        np.testing.assert_array_equal(sorted_unique(keys), np.unique(keys))

@@ -1,4 +1,4 @@
-"""Cluster centres, the constraint matrix H and the disjoint partition (pure numpy/scipy).
+"""Cluster centres, the constraint matrix H and the disjoint partition (numpy/scipy/numba).
 
 Remillard & Kry 2013 (section 4.3 of the draft) hold the shell to the body through c << n
 clusters: cluster C with centre vertex c_C has weights
@@ -22,6 +22,17 @@ wavelength ``lambda = 2 pi h (Ebar_f / (3 Ebar_s))^(1/3)``, ``Ebar = E / (1 - nu
 (Remillard & Kry 2013, after Cerda & Mahadevan 2003), giving ``r = lambda / 2`` and
 ``sigma = lambda / pi``. Without an explicit sigma, ``sigma = 2 r / pi`` (the same ratio), so
 ``2 sigma = 1.27 r`` covers every vertex.
+
+Cost: every edge-path distance comes from one numba Dijkstra kernel (binary heap on the CSR
+edge graph) that only labels vertices whose new distance is within a limit and below their
+current label, with scratch arrays allocated once per call and reset only where they were
+touched. A Gaussian row therefore costs its support (ball of radius ``2 sigma``), and a new
+centre of either placement method costs the region it captures (incremental farthest-point
+sampling); the next centre is the root of a tournament tree, not a scan of all n vertices. With
+c proportional to n (supports of bounded size) the set-up is O(n log n): farthest-point
+sampling lowers a vertex's distance about ln c times (measured 7.4 n lowerings at 160k
+vertices, 8.5 n at 640k). The results are those of full-length scipy ``csgraph.dijkstra``
+passes: same centres, same distances, H to round-off (row sums added in another order).
 """
 
 from __future__ import annotations
@@ -29,6 +40,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+import numba
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
@@ -43,7 +55,6 @@ IntArray = npt.NDArray[np.int64]
 Method = Literal["fps", "bfs"]
 
 _DENSE_SVD_LIMIT = 4_000_000  # c * n entries up to which the dense SVD of H is used
-_BATCH_ENTRIES = 20_000_000  # dense (batch x n) distance entries per Dijkstra batch
 
 
 def _positive_or_none(name: str, value: float | int | None) -> None:
@@ -196,14 +207,283 @@ def edge_graph(vertices: FloatArray, faces: IntArray) -> sp.csr_matrix:
     return g.tocsr()
 
 
-def _distances(graph: sp.csr_matrix, source: int, limit: float) -> FloatArray:
-    """Edge-path distances from one vertex, ``inf`` beyond ``limit``."""
-    return csgraph.dijkstra(graph, indices=source, limit=limit)
+# --- numba kernels: binary heap, truncated / pruned Dijkstra --------------------------------
+
+
+@numba.njit(cache=True, inline="always")
+def _before(key_a: float, item_a: int, key_b: float,
+            item_b: int) -> bool:  # pragma: no cover - numba
+    """Heap order: smaller key first, ties by smaller item (vertex index)."""
+    return key_a < key_b or (key_a == key_b and item_a < item_b)
+
+
+@numba.njit(cache=True)
+def _sift_down(keys: FloatArray, items: IntArray, size: int,
+               i: int) -> None:  # pragma: no cover - numba
+    """Move entry ``i`` of the binary min-heap ``keys[:size], items[:size]`` down into place."""
+    key, item = keys[i], items[i]
+    while True:
+        child = 2 * i + 1
+        if child >= size:
+            break
+        if child + 1 < size and _before(keys[child + 1], items[child + 1], keys[child],
+                                        items[child]):
+            child += 1
+        if not _before(keys[child], items[child], key, item):
+            break
+        keys[i], items[i] = keys[child], items[child]
+        i = child
+    keys[i], items[i] = key, item
+
+
+@numba.njit(cache=True)
+def _heap_push(keys: FloatArray, items: IntArray, size: int, key: float,
+               item: int) -> int:  # pragma: no cover - numba
+    """Insert ``(key, item)`` into the min-heap of ``size`` entries; the new size."""
+    i = size
+    while i > 0:
+        parent = (i - 1) >> 1
+        if not _before(key, item, keys[parent], items[parent]):
+            break
+        keys[i], items[i] = keys[parent], items[parent]
+        i = parent
+    keys[i], items[i] = key, item
+    return size + 1
+
+
+@numba.njit(cache=True)
+def _heap_pop(keys: FloatArray, items: IntArray, size: int) -> int:  # pragma: no cover - numba
+    """Remove the root (smallest entry) of the min-heap of ``size >= 1`` entries; new size."""
+    size -= 1
+    if size > 0:
+        keys[0], items[0] = keys[size], items[size]
+        _sift_down(keys, items, size, 0)
+    return size
+
+
+@numba.njit(cache=True)
+def _dijkstra_update(indptr: IntArray, indices: IntArray, weights: FloatArray, source: int,
+                     limit: float, dist: FloatArray, heap_keys: FloatArray, heap_items: IntArray,
+                     settled: IntArray) -> int:  # pragma: no cover - numba
+    """Dijkstra from ``source`` lowering the labels ``dist`` in place.
+
+    A vertex gets the path length ``d`` only if ``d <= limit`` (as scipy's ``limit``) and
+    ``d < dist[u]``, and the search does not continue through the others. With ``dist = inf``
+    this is the Dijkstra truncated at ``limit``; with ``dist`` = the current distance to the
+    nearest centre it is the incremental update by a new centre: the labels become
+    ``min(dist, d_source)`` exactly (a vertex that keeps its label has a neighbourhood that
+    cannot be improved through it). The work is proportional to the lowered vertices and
+    their edges, never to n.
+
+    Args:
+        indptr: ``(n + 1,)`` CSR row pointers of the edge graph.
+        indices: ``(nnz,)`` CSR neighbours.
+        weights: ``(nnz,)`` positive edge lengths.
+        source: start vertex.
+        limit: largest path length labelled.
+        dist: ``(n,)`` labels, lowered in place.
+        heap_keys: ``(nnz + 1,)`` scratch.
+        heap_items: ``(nnz + 1,)`` scratch.
+        settled: ``(n,)`` output: the lowered vertices, each once, in order of distance.
+
+    Returns:
+        The number k of lowered vertices, ``settled[:k]``.
+
+    """
+    if not (0.0 <= limit and 0.0 < dist[source]):
+        return 0
+    dist[source] = 0.0
+    size = _heap_push(heap_keys, heap_items, 0, 0.0, source)
+    count = 0
+    while size > 0:
+        d, v = heap_keys[0], heap_items[0]
+        size = _heap_pop(heap_keys, heap_items, size)
+        if d > dist[v]:  # stale entry: v was pushed again with a smaller distance
+            continue
+        settled[count] = v
+        count += 1
+        for j in range(indptr[v], indptr[v + 1]):
+            u = indices[j]
+            du = d + weights[j]
+            if du <= limit and du < dist[u]:
+                dist[u] = du
+                size = _heap_push(heap_keys, heap_items, size, du, u)
+    return count
+
+
+@numba.njit(cache=True, inline="always")
+def _winner(tree: IntArray, i: int, mind: FloatArray,
+            sign: float) -> int:  # pragma: no cover - numba
+    """Winner of node ``i`` from its two children: smaller ``sign * mind``, ties to the left.
+
+    The left subtree holds the smaller vertex ids, so ties go to the first vertex (as
+    ``np.argmax`` / ``np.argmin``); -1 marks a subtree without candidates.
+    """
+    a, b = tree[2 * i], tree[2 * i + 1]
+    if a < 0:
+        return b
+    if b < 0 or sign * mind[a] <= sign * mind[b]:
+        return a
+    return b
+
+
+@numba.njit(cache=True)
+def _tree_build(mind: FloatArray, sign: float, floor: float) -> IntArray:  # pragma: no cover
+    """Tournament tree over the vertices with ``mind >= floor`` (candidates).
+
+    ``tree[1]`` is the candidate of smallest ``sign * mind`` (first on ties), -1 if none;
+    leaf ``v`` is ``tree[leaves + v]`` with ``leaves`` the power of two ``>= n``.
+    """
+    n = mind.size
+    leaves = 1
+    while leaves < n:
+        leaves *= 2
+    tree = np.full(2 * leaves, -1, dtype=np.int64)
+    for v in range(n):
+        if mind[v] >= floor:
+            tree[leaves + v] = v
+    for i in range(leaves - 1, 0, -1):
+        tree[i] = _winner(tree, i, mind, sign)
+    return tree
+
+
+@numba.njit(cache=True)
+def _tree_update(tree: IntArray, v: int, mind: FloatArray, sign: float,
+                 floor: float) -> None:  # pragma: no cover - numba
+    """Refresh the tournament tree after ``mind[v]`` decreased.
+
+    Walks up from leaf ``v`` and stops at the first node whose winner is unchanged and is not
+    ``v`` itself (its value, hence every ancestor, is then unchanged): O(1) for most vertices.
+    """
+    i = tree.size // 2 + v
+    tree[i] = v if mind[v] >= floor else -1
+    i //= 2
+    while i >= 1:
+        w = _winner(tree, i, mind, sign)
+        if w == tree[i] and w != v:
+            return
+        tree[i] = w
+        i //= 2
+
+
+@numba.njit(cache=True)
+def _select_centres(indptr: IntArray, indices: IntArray, weights: FloatArray, seed: int,
+                    max_count: int, spacing: float, farthest: bool,
+                    mind: FloatArray) -> tuple[IntArray, float]:  # pragma: no cover - numba
+    """Farthest-point sampling or greedy breadth-first growth with incremental distances.
+
+    ``mind`` (in place, ``inf`` on entry) is the edge-path distance to the nearest centre.
+    Farthest (FPS): the next centre is the first vertex of largest ``mind`` (``np.argmax``),
+    taken while ``mind >= spacing`` and ``> 0``; the distances are not truncated. Otherwise
+    (BFS): the next centre is the first vertex of smallest ``mind >= spacing`` (unreached:
+    ``inf``) and every distance is truncated at ``2 spacing``. The selection is the root of a
+    tournament tree refreshed at the vertices each new centre brought closer.
+
+    Args:
+        indptr: CSR row pointers of the edge graph.
+        indices: CSR neighbours.
+        weights: edge lengths.
+        seed: first centre.
+        max_count: stop after this many centres.
+        spacing: FPS: stop below this distance (0: no limit); BFS: the radius r.
+        farthest: FPS if True, else BFS.
+        mind: ``(n,)`` distances to the nearest centre, filled in place.
+
+    Returns:
+        ``(centres, r)``: the centres in order and the last FPS selection distance
+        (``inf`` if none was selected after the seed; unused for BFS).
+
+    """
+    n = mind.size
+    limit = np.inf if farthest else 2.0 * spacing
+    sign = -1.0 if farthest else 1.0
+    floor = -np.inf if farthest else spacing
+    heap_keys = np.empty(indices.size + 1)
+    heap_items = np.empty(indices.size + 1, dtype=np.int64)
+    settled = np.empty(n, dtype=np.int64)
+    centres = np.empty(max(max_count, 1), dtype=np.int64)
+    centres[0] = seed
+    count, r = 1, np.inf
+    _dijkstra_update(indptr, indices, weights, seed, limit, mind, heap_keys, heap_items,
+                     settled)
+    tree = _tree_build(mind, sign, floor)
+    while count < max_count and tree[1] >= 0:
+        nxt = tree[1]
+        if farthest:
+            if mind[nxt] < spacing or mind[nxt] == 0.0:
+                break
+            r = mind[nxt]
+        centres[count] = nxt
+        count += 1
+        k = _dijkstra_update(indptr, indices, weights, nxt, limit, mind, heap_keys, heap_items,
+                             settled)
+        for i in range(k):
+            _tree_update(tree, settled[i], mind, sign, floor)
+    return centres[:count].copy(), r
+
+
+@numba.njit(cache=True)
+def _balls(indptr: IntArray, indices: IntArray, weights: FloatArray, centres: IntArray,
+           radius: float) -> tuple[IntArray, IntArray, FloatArray]:  # pragma: no cover - numba
+    """Vertices at edge-path distance ``< radius`` of each centre, as CSR rows.
+
+    Args:
+        indptr: CSR row pointers of the edge graph.
+        indices: CSR neighbours.
+        weights: edge lengths.
+        centres: ``(c,)`` centre vertices.
+        radius: ball radius (exclusive).
+
+    Returns:
+        ``(rowptr, columns, distances)``: row ``C`` holds the ball of centre ``C`` in
+        ascending vertex order, ``columns[rowptr[C]:rowptr[C + 1]]``.
+
+    """
+    n = indptr.size - 1
+    dist = np.full(n, np.inf)
+    heap_keys = np.empty(indices.size + 1)
+    heap_items = np.empty(indices.size + 1, dtype=np.int64)
+    settled = np.empty(n, dtype=np.int64)
+    rowptr = np.zeros(centres.size + 1, dtype=np.int64)
+    columns = np.empty(max(16, 4 * n), dtype=np.int64)
+    distances = np.empty(columns.size)
+    nnz = 0
+    for c in range(centres.size):
+        k = _dijkstra_update(indptr, indices, weights, centres[c], radius, dist, heap_keys,
+                             heap_items, settled)
+        if nnz + k > columns.size:
+            grown = max(2 * columns.size, nnz + k)
+            columns = np.concatenate((columns, np.empty(grown - columns.size, np.int64)))
+            distances = np.concatenate((distances, np.empty(grown - distances.size)))
+        for v in np.sort(settled[:k]):
+            if dist[v] < radius:
+                columns[nnz], distances[nnz] = v, dist[v]
+                nnz += 1
+        for i in range(k):  # reset only what this ball touched
+            dist[settled[i]] = np.inf
+        rowptr[c + 1] = nnz
+    return rowptr, columns[:nnz].copy(), distances[:nnz].copy()
+
+
+def _csr_arrays(graph: sp.csr_matrix) -> tuple[IntArray, IntArray, FloatArray]:
+    """``(indptr, indices, data)`` of the edge graph as int64 / float64 arrays."""
+    g = sp.csr_matrix(graph)
+    return (np.asarray(g.indptr, dtype=np.int64), np.asarray(g.indices, dtype=np.int64),
+            np.asarray(g.data, dtype=np.float64))
+
+
+def _check_vertices(name: str, ids: IntArray, n: int) -> None:
+    """Raise InputError unless every vertex id is in ``[0, n)`` (numba does not check)."""
+    if ids.size and (ids.min() < 0 or ids.max() >= n):
+        raise InputError(f"{name}: vertex ids must be in [0, {n}), got "
+                         f"[{ids.min()}, {ids.max()}]")
 
 
 def farthest_point_centres(graph: sp.csr_matrix, seed: int, count: int | None,
                            spacing: float | None) -> tuple[IntArray, float]:
     """Farthest-point sampling with edge-path distance.
+
+    Incremental: a new centre's Dijkstra only visits the vertices it brings closer.
 
     Args:
         graph: edge-length graph.
@@ -215,30 +495,29 @@ def farthest_point_centres(graph: sp.csr_matrix, seed: int, count: int | None,
         ``(centres, r)``: the centres and the last selection distance (min pairwise distance
         of the centres, >= ``spacing``; also a bound on every vertex's distance to a centre).
 
+    Raises:
+        InputError: ``seed`` is not a vertex.
+
     """
     n = graph.shape[0]
-    centres, r = [seed], np.inf
-    mind = _distances(graph, seed, np.inf)
+    _check_vertices("farthest_point_centres: seed", np.array([seed], dtype=np.int64), n)
+    mind = np.full(n, np.inf)
     limit = n if count is None else min(count, n)
-    while len(centres) < limit:
-        nxt = int(np.argmax(mind))
-        if (spacing is not None and mind[nxt] < spacing) or mind[nxt] == 0.0:
-            break
-        r = float(mind[nxt])
-        centres.append(nxt)
-        mind = np.minimum(mind, _distances(graph, nxt, r))
+    centres, r = _select_centres(*_csr_arrays(graph), int(seed), int(limit),
+                                 0.0 if spacing is None else float(spacing), True, mind)
     if spacing is not None:
         r = spacing
     elif not np.isfinite(r):
         r = float(mind[np.isfinite(mind)].max())
-    return np.asarray(centres, dtype=np.int64), r
+    return centres, float(r)
 
 
 def greedy_bfs_centres(graph: sp.csr_matrix, seed: int, spacing: float) -> IntArray:
     """Greedy breadth-first growth (Remillard & Kry 2013): centres >= ``spacing`` apart.
 
     The next centre is the uncovered vertex (distance >= spacing to every centre) closest to
-    the covered region; unreached components start at their lowest vertex index.
+    the covered region; unreached components start at their lowest vertex index. Distances
+    are truncated at ``2 spacing`` and updated incrementally per new centre.
 
     Args:
         graph: edge-length graph.
@@ -248,16 +527,15 @@ def greedy_bfs_centres(graph: sp.csr_matrix, seed: int, spacing: float) -> IntAr
     Returns:
         The centres in order of growth.
 
+    Raises:
+        InputError: ``seed`` is not a vertex.
+
     """
-    centres = [seed]
-    mind = _distances(graph, seed, 2.0 * spacing)
-    while True:
-        free = np.flatnonzero(mind >= spacing)
-        if free.size == 0:
-            return np.asarray(centres, dtype=np.int64)
-        nxt = int(free[np.argmin(mind[free])])
-        centres.append(nxt)
-        mind = np.minimum(mind, _distances(graph, nxt, 2.0 * spacing))
+    n = graph.shape[0]
+    _check_vertices("greedy_bfs_centres: seed", np.array([seed], dtype=np.int64), n)
+    centres, _ = _select_centres(*_csr_arrays(graph), int(seed), n, float(spacing), False,
+                                 np.full(n, np.inf))
+    return centres
 
 
 def surface_area(vertices: FloatArray, faces: IntArray) -> float:
@@ -269,24 +547,30 @@ def surface_area(vertices: FloatArray, faces: IntArray) -> float:
 def gaussian_weights(graph: sp.csr_matrix, centres: IntArray, sigma: float) -> sp.csr_matrix:
     """``H`` with ``alpha_i ~ exp(-d_i^2 / (2 sigma^2))`` for ``d_i < 2 sigma``, rows sum to 1.
 
+    One Dijkstra truncated at ``2 sigma`` per centre, costing its support only.
+
     Args:
         graph: edge-length graph.
         centres: ``(c,)`` centre vertices.
         sigma: Gaussian width.
 
     Returns:
-        ``(c, n)`` CSR matrix.
+        ``(c, n)`` CSR matrix (sorted column indices).
+
+    Raises:
+        InputError: a centre is not a vertex, or ``sigma`` is not a positive number.
 
     """
     n = graph.shape[0]
-    batch = max(1, _BATCH_ENTRIES // max(n, 1))
-    blocks = []
-    for start in range(0, centres.size, batch):
-        d = csgraph.dijkstra(graph, indices=centres[start:start + batch], limit=2.0 * sigma)
-        w = np.where(d < 2.0 * sigma, np.exp(-0.5 * (np.minimum(d, 2.0 * sigma) / sigma) ** 2),
-                     0.0)
-        blocks.append(sp.csr_matrix(w / w.sum(axis=1, keepdims=True)))
-    return sp.vstack(blocks, format="csr")
+    c = np.asarray(centres, dtype=np.int64)
+    if not (np.isfinite(sigma) and sigma > 0):
+        raise InputError(f"gaussian_weights: sigma must be a positive number, got {sigma!r}")
+    _check_vertices("gaussian_weights: centres", c, n)
+    rowptr, columns, d = _balls(*_csr_arrays(graph), c, 2.0 * sigma)
+    w = np.exp(-0.5 * (d / sigma) ** 2)
+    rows = np.repeat(np.arange(c.size), np.diff(rowptr))
+    w /= np.bincount(rows, weights=w, minlength=c.size)[rows]
+    return sp.csr_matrix((w, columns, rowptr), shape=(c.size, n))
 
 
 def nearest_centre_partition(graph: sp.csr_matrix, centres: IntArray) -> IntArray:

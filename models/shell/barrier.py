@@ -53,12 +53,14 @@ import numpy as np
 from models.errors import InputError
 from models.shell.assembly import (
     HessianMode,
+    HessianSink,
     TermEval,
     check_hessian_mode,
     check_order,
     project_psd_blocks,
+    scatter_block,
 )
-from models.shell.membrane import _skew_entry
+from models.shell.membrane import _cyclic_sign, _skew_entry
 from models.shell.rest import face_normals, squared_edges
 
 
@@ -78,11 +80,17 @@ def _barrier(s: float, s_hat: float) -> tuple[float, float, float]:  # pragma: n
 @numba.njit(cache=True, fastmath=False)
 def _flip_kernel(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, weight: np.ndarray,
                  ref: np.ndarray, s_hat: float, stiffness: float, order: int, keep_curv: bool,
-                 vals: np.ndarray, grad: np.ndarray,
-                 blocks: np.ndarray) -> None:  # pragma: no cover - numba
-    """Fused value / gradient / 9x9 Hessian of ``stiffness w b(s)`` per face."""
+                 vals: np.ndarray, grad: np.ndarray, blocks: np.ndarray, fused: bool,
+                 data: np.ndarray, base: np.ndarray,
+                 row_len: np.ndarray) -> None:  # pragma: no cover - numba
+    """Fused value / gradient / 9x9 Hessian of ``stiffness w b(s)`` per face.
+
+    With ``fused`` only the active faces' blocks are added straight into ``data``
+    (:class:`HessianSink`); otherwise every face's block is written (zero when inactive).
+    """
     d = np.empty((3, 3))
     gs = np.empty((3, 3))
+    scratch = np.empty((9, 9))
     for f in range(faces.shape[0]):
         for a in range(3):
             b, c = faces[f, (a + 1) % 3], faces[f, (a + 2) % 3]
@@ -99,7 +107,7 @@ def _flip_kernel(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, weight
         if s <= 0.0 or s >= s_hat:
             if s > 0.0:
                 vals[f] = 0.0
-            if order >= 2:
+            if order >= 2 and not fused:
                 blocks[f] = 0.0
             continue
         bv, b1, b2 = _barrier(s, s_hat)
@@ -116,18 +124,17 @@ def _flip_kernel(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, weight
         if order < 2:
             continue
         cg, cc = w * b2, (w * b1 / (2.0 * a0) if keep_curv else 0.0)
+        kb = scratch if fused else blocks[f]
         for a in range(3):
             for bb in range(3):
-                sgn = 0.0
-                if bb == (a + 1) % 3:
-                    sgn = -1.0
-                elif a == (bb + 1) % 3:
-                    sgn = 1.0
+                sgn = _cyclic_sign(a, bb)
                 for p in range(3):
                     for q in range(3):
-                        blocks[f, 3 * a + p, 3 * bb + q] = (
+                        kb[3 * a + p, 3 * bb + q] = (
                             cg * gs[a, p] * gs[bb, q]
                             + cc * sgn * _skew_entry(r0, r1, r2, p, q))
+        if fused:
+            scatter_block(data, faces[f], base[f], row_len, scratch, 1.0)
 
 
 def signed_area_ratio(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray,
@@ -164,7 +171,7 @@ def barrier_weights(x_rest: np.ndarray, faces: np.ndarray) -> np.ndarray:
 def flip_barrier(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, weight: np.ndarray,
                  ref: np.ndarray, *,
                  s_hat: float = 0.1, order: int = 2, hessian_mode: HessianMode = "exact",
-                 stiffness: float = 1.0) -> TermEval:
+                 stiffness: float = 1.0, sink: HessianSink | None = None) -> TermEval:
     """Flip barrier ``stiffness * sum_f A0_f b(s_f)`` (module docstring).
 
     Args:
@@ -178,6 +185,9 @@ def flip_barrier(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, weight
         hessian_mode: "exact"; "gauss_newton" (``A0 b'' grad s grad s^T`` only); "projected"
             (exact 9x9 blocks with eigenvalues clamped to >= 0).
         stiffness: Factor k_F (energy / area) multiplying the energy and its derivatives.
+        sink: If given (order 2, not "projected"), the active faces' 9x9 blocks are added
+            straight into ``sink.data`` (:class:`models.shell.assembly.HessianSink`) and
+            ``blocks`` is None: no (F, 9, 9) array is written (207 MB at 160k vertices).
 
     Returns:
         TermEval with per-face energies in ``element_values``; the value is +inf (and that
@@ -189,11 +199,13 @@ def flip_barrier(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, weight
     check_hessian_mode(hessian_mode)
     check_activation(s_hat, "s_hat")
     m = faces.shape[0]
+    use_sink = sink if order >= 2 and hessian_mode != "projected" else None
+    fused, data, base, row_len = HessianSink.unpacked(use_sink, 3)
     vals, grad = np.empty(m), np.zeros(3 * x.shape[0] if order >= 1 else 0)
-    blocks = np.empty((m, 9, 9) if order >= 2 else (0, 9, 9))
+    blocks = np.empty((m, 9, 9) if order >= 2 and not fused else (0, 9, 9))
     _flip_kernel(x, faces, rest_area, weight, np.ascontiguousarray(ref, dtype=np.float64),
                  float(s_hat), float(stiffness), order, hessian_mode != "gauss_newton",
-                 vals, grad, blocks)
+                 vals, grad, blocks, fused, data, base, row_len)
     active = np.flatnonzero(vals > 0.0)
     if order >= 2 and hessian_mode == "projected" and active.size:
         sub = np.ascontiguousarray(blocks[active])
@@ -201,4 +213,5 @@ def flip_barrier(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, weight
         blocks[active] = sub
     # no face below the activation: every block is zero, so none is handed to the assembly
     return TermEval(value=float(vals.sum()), grad=grad if order >= 1 else None,
-                    blocks=blocks if order >= 2 and active.size else None, element_values=vals)
+                    blocks=blocks if order >= 2 and active.size and not fused else None,
+                    element_values=vals)

@@ -250,8 +250,9 @@ class ShellEnergy:
                     data: np.ndarray | None = None) -> dict[str, TermEval]:
         """Evaluate every active term (stiffness already included).
 
-        With ``data`` (order 2) the edge and hinge kernels add their blocks straight into it
-        (:class:`models.shell.assembly.HessianSink`); the other terms return blocks.
+        With ``data`` (order 2) the edge, hinge and flip-barrier kernels add their blocks
+        straight into it (:class:`models.shell.assembly.HessianSink`); the other terms (and
+        the barrier's projected mode) return blocks.
         """
         p, t, r = self.params, self.topology, self.rest
         out: dict[str, TermEval] = {}
@@ -271,7 +272,8 @@ class ShellEnergy:
             out["flip_barrier"] = flip_barrier(x, t.faces[k], r.rest_areas[k], self._flip_weights,
                                                self._ref_normals[k],
                                                s_hat=p.flip_activation, order=order,
-                                               hessian_mode=mode, stiffness=p.k_F)
+                                               hessian_mode=mode, stiffness=p.k_F,
+                                               sink=self._sink("flip_barrier", data))
         if self._penalty is not None:
             out["penalty"] = penalty_term(x, self._target, self._penalty, order=min(order, 1),
                                           stiffness=p.k_P)

@@ -155,6 +155,19 @@ def _skew_entry(c0: float, c1: float, c2: float, p: int, q: int) -> float:  # pr
     return -c1 if q == 0 else c0
 
 
+@numba.njit(cache=True, inline="always")
+def _cyclic_sign(a: int, b: int) -> float:  # pragma: no cover
+    """-1 if b follows a in the cyclic order (0, 1, 2), +1 if a follows b, 0 if a == b.
+
+    The sign of the cross-product block ``d^2 A / dx_a dx_b`` of a triangle's area vector.
+    """
+    if b == (a + 1) % 3:
+        return -1.0
+    if a == (b + 1) % 3:
+        return 1.0
+    return 0.0
+
+
 @numba.njit(cache=True, fastmath=False)
 def _area_kernel(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, stiffness: float,
                  order: int, keep_curv: bool, vals: np.ndarray, grad: np.ndarray,
@@ -202,11 +215,7 @@ def _area_kernel(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, stiffn
                         sk[a, p, q] = s - hp * proj
         for a in range(3):
             for b in range(3):
-                sgn = 0.0
-                if b == (a + 1) % 3:
-                    sgn = -1.0
-                elif a == (b + 1) % 3:
-                    sgn = 1.0
+                sgn = _cyclic_sign(a, b)
                 for p in range(3):
                     for q in range(3):
                         hab = cg * ga[a, p] * ga[b, q]

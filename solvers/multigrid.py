@@ -112,7 +112,11 @@ class MultigridOptions:
             full level operator, penalty included) or "sor" (symmetric SOR sweeps on the
             assembled ``A_l`` alone, the penalty ``G_l^T G_l`` left to Chebyshev). Measured on
             the 9409-vertex plate of tests/test_multigrid.py (CPU time, shared machine):
-            Jacobi degree 2: 21 CG its, 0.16 s; SOR degree 2: 15 its, 0.23 s.
+            Jacobi degree 2: 21 CG its, 0.16 s; SOR degree 2: 15 its, 0.23 s. Point-block
+            (3 x 3 vertex) Jacobi was tried in session 4 on the 160k warm-started frame of
+            benchmarks/iterative.py: 188 instead of 214 CG iterations in the three longest
+            solves, but 6.7 instead of 5.5 s CPU per Newton iteration (a numpy block
+            product per smoothing step), so it is not offered.
         cycle: "v" or "w" cycle.
         residual_slack: A solve is accepted when the true relative residual is at most
             ``residual_slack`` times the requested tolerance (>= 1; the recursive CG residual
@@ -305,6 +309,47 @@ class _Jacobi:
         y.pointwiseMult(x, self.inverse)
 
 
+class _SymmetricCopy:
+    """A symmetric 3 x 3 block (SBAIJ) copy of an AIJ level matrix, refreshed in place.
+
+    The positions of the upper block triangle's entries in the AIJ values are found once
+    (the Galerkin patterns are fixed); :meth:`refresh` gathers the current values and sets
+    them block-row-wise into the same SBAIJ matrix: at 160k vertices 0.08 s for the fine
+    level, against 0.2 s for a copy and ``MatConvert`` (benchmarks/iterative.py).
+    """
+
+    def __init__(self, source: Any) -> None:
+        indptr, indices, values = source.getValuesCSR()
+        n = (indptr.size - 1) // 3
+        rows = np.repeat(np.arange(indptr.size - 1), np.diff(indptr))
+        upper = np.flatnonzero(indices // 3 >= rows // 3)
+        block = (rows[upper] // 3) * n + indices[upper] // 3
+        order = np.argsort(block, kind="stable")
+        self.positions = upper[order]
+        block = block[order]
+        first = np.ones(block.size, dtype=bool)
+        np.not_equal(block[1:], block[:-1], out=first[1:])
+        keys = block[first]
+        slot = (np.cumsum(first) - 1) * 9
+        self.slots = slot + 3 * (rows[self.positions] % 3) + indices[self.positions] % 3
+        self.bptr = np.searchsorted(keys // n, np.arange(n + 1)).astype(PETSc.IntType)
+        self.bidx = (keys % n).astype(PETSc.IntType)
+        self.values = np.zeros(9 * keys.size)
+        self.source = source
+        self.values[self.slots] = values[self.positions]
+        csr: Any = (self.bptr, self.bidx, self.values)
+        mat: Any = PETSc.Mat().createSBAIJ(source.getSize(), 3, csr=csr, comm=PETSc.COMM_SELF)
+        mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        mat.assemble()
+        self.mat = mat
+
+    def refresh(self) -> None:
+        """Copy the source's current values (same pattern) into the SBAIJ matrix."""
+        self.values[self.slots] = self.source.getValuesCSR()[2][self.positions]
+        self.mat.setValuesBlockedCSR(self.bptr, self.bidx, self.values)
+        self.mat.assemble()
+
+
 def _python_operator(product: _LowRankOperator) -> Any:
     """Wrap ``A + G^T G`` (or ``A`` alone when g is None) as a matrix-free ``MatPython``."""
     n = product.a.getSize()[0]
@@ -445,6 +490,7 @@ class MultigridLinearSystem:
         self._current: tuple[Any, float] | None = None
         self._jacobi: list[_Jacobi] = []
         self._products: list[_LowRankOperator] = []
+        self._sbaij: list[_SymmetricCopy] = []
         self._estimate_due = True
         self._bounds_stale = False
 
@@ -544,12 +590,13 @@ class MultigridLinearSystem:
         """Point the level operators at this set-up's ``A_l`` (an SBAIJ copy if asked)."""
         if self.options.level_format == "aij":
             return
-        for product, a in zip(self._products, self._galerkin[1:], strict=True):
+        if len(self._sbaij) != len(self._products):
             # converting A_l itself breaks the reused MatPtAP (PETSc 3.25: a segfault when
-            # A_l is a PtAP result, a wrong next product when it is the fine matrix): copy first
-            source = a.copy()
-            source.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-            product.a = source.convert("sbaij")
+            # A_l is a PtAP result, a wrong next product when it is the fine matrix): copy
+            self._sbaij = [_SymmetricCopy(a) for a in self._galerkin[1:]]
+        for product, copy in zip(self._products, self._sbaij, strict=True):
+            copy.refresh()
+            product.a = copy.mat
 
     def _level_operators(self) -> list[Any]:
         """Per level (coarse to fine): the assembled coarse matrix, then ``A_l + G_l^T G_l``.

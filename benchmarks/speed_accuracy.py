@@ -89,6 +89,7 @@ from shell_solve import proc_status_mib, reset_peak_rss  # noqa: E402
 from models.backend import MPI  # noqa: E402
 from models.errors import InputError, SolverError  # noqa: E402
 from wrinkles.measure import normal_heights, shell_wavelength  # noqa: E402
+from wrinkles.output import write_text_atomic  # noqa: E402
 from wrinkles.presets import PRESET_ROWS  # noqa: E402
 from wrinkles.runner import prepare, run_frames  # noqa: E402
 from wrinkles.scene import load_scene  # noqa: E402
@@ -621,9 +622,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def write_json(doc: dict[str, Any], out: Path) -> None:
     """Write ``doc`` to ``out`` atomically (a killed run leaves the previous complete file)."""
-    tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(json.dumps(doc, indent=2) + "\n")
-    tmp.replace(out)
+    write_text_atomic(out, json.dumps(doc, indent=2) + "\n")
 
 
 def preset_map(doc: dict[str, Any]) -> dict[str, str]:

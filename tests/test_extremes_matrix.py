@@ -482,9 +482,13 @@ def test_shell_near_degenerate_triangles(flatness):
 
 SLIVER_ENERGY: dict[tuple[float, str], float] = {}
 """Converged W of each accepted sliver case, to cross-check the two Hessian strategies."""
-SLIVER_BOUND = {"exact": 70, "mixed": 30}
-"""Newton iterations allowed per strategy (measured max 62 exact at q = 0.023, 26 mixed at
-q = 2.3e-3)."""
+SLIVER_BOUND = {"exact": 120, "mixed": 30}
+"""Newton iterations allowed per strategy. Mixed: measured max 26 at q = 2.3e-3. Exact, q =
+0.023: 62 (session 2), 77 at commit 5e9209a on this machine (session 4, which failed the old
+bound of 70) and 91 once the cluster weights are summed in another order (H changed by at most
+6e-17): the exact-Hessian path through the indefinite region is chaotic in round-off, so the
+bound leaves room over the largest measured count; that it converges, to the same W as the
+mixed strategy (rel 1e-9), is what the test checks."""
 
 
 def sliver_state(energy: ShellEnergy, x: np.ndarray) -> dict[str, float]:

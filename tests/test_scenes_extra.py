@@ -100,20 +100,22 @@ def twisted_cylinder_metrics(out: Path) -> dict[str, float]:
             "amplitude": amp, "amplitude_over_radius": amp / CYL_RADIUS}
 
 
-@pytest.fixture(scope="module")
-def bent_bar(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("bent_bar") / "out"
-    proc = run_scene("bent_bar", out, *COARSE)
+def _coarse_run(tmp_path_factory, name: str) -> Path:
+    """Run scenes/<name>.toml with the coarse overrides; its output directory."""
+    out = tmp_path_factory.mktemp(name) / "out"
+    proc = run_scene(name, out, *COARSE)
     assert proc.returncode == 0, proc.stderr
     return out
+
+
+@pytest.fixture(scope="module")
+def bent_bar(tmp_path_factory) -> Path:
+    return _coarse_run(tmp_path_factory, "bent_bar")
 
 
 @pytest.fixture(scope="module")
 def twisted(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("twisted_cylinder") / "out"
-    proc = run_scene("twisted_cylinder", out, *COARSE)
-    assert proc.returncode == 0, proc.stderr
-    return out
+    return _coarse_run(tmp_path_factory, "twisted_cylinder")
 
 
 def test_bent_bar_wrinkles_on_the_compressed_side(bent_bar):

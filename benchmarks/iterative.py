@@ -16,6 +16,8 @@ same start with the same Hessian mode (``--hessian``, default the PSD "gauss_new
 * ``multigrid-fast``: :data:`FAST` (CG to a fixed true residual 1e-4, Chebyshev bounds once
   per Newton solve, SBAIJ level products, shifted CG instead of a direct fallback);
 * ``multigrid-fast-ew``: the same with the Eisenstat-Walker forcing term;
+* ``multigrid-fast-tight``: :data:`FAST` with CG to the true residual 1e-8 every iteration
+  (the direct solve's Newton history to the CG tolerance);
 * ``multigrid-fast-w``, ``multigrid-fast-ew-w``: the same two with W-cycles.
 
 Each runs ``--iterations`` Newton iterations (or stops at ``--rtol``) and reports the time per
@@ -102,6 +104,8 @@ METHODS: dict[str, dict] = {
     "multigrid-fast": {"linear_method": "multigrid", "multigrid": FAST},
     "multigrid-fast-ew": {"linear_method": "multigrid",
                           "multigrid": replace(FAST, forcing="eisenstat_walker")},
+    "multigrid-fast-tight": {"linear_method": "multigrid",
+                             "multigrid": replace(FAST, rtol=1e-8, target_fraction=0.0)},
     "multigrid-fast-w": {"linear_method": "multigrid", "multigrid": replace(FAST, cycle="w")},
     "multigrid-fast-ew-w": {"linear_method": "multigrid",
                             "multigrid": replace(FAST, forcing="eisenstat_walker", cycle="w")},

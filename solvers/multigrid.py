@@ -78,6 +78,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 
@@ -309,6 +310,56 @@ class _Jacobi:
         y.pointwiseMult(x, self.inverse)
 
 
+@numba.njit(cache=True)
+def _upper_blocks(indptr: np.ndarray, indices: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """Find the upper 3 x 3 block triangle (block column >= block row) of a CSR pattern.
+
+    One pass per block row: the block columns its three scalar rows reach (sorted), then
+    every entry's slot in the row-major 3 x 3 block values.
+
+    Returns:
+        ``(positions, slots, bptr, bidx)``: the CSR value positions of the entries, their
+        slots in the BSR values (``9 block + 3 (row % 3) + col % 3``), and the BSR row
+        pointers and block columns.
+
+    """
+    nb = (indptr.size - 1) // 3
+    count = 0
+    for r in range(indptr.size - 1):
+        for k in range(indptr[r], indptr[r + 1]):
+            count += indices[k] // 3 >= r // 3
+    positions = np.empty(count, dtype=np.int64)
+    slots = np.empty(count, dtype=np.int64)
+    bptr = np.zeros(nb + 1, dtype=np.int64)
+    bidx = np.empty(count, dtype=np.int64)
+    mark = np.full(nb, -1, dtype=np.int64)
+    slot_of = np.empty(nb, dtype=np.int64)
+    i = 0
+    for ib in range(nb):
+        start = bptr[ib]
+        cnt = 0
+        for r in range(3 * ib, 3 * ib + 3):
+            for k in range(indptr[r], indptr[r + 1]):
+                jb = indices[k] // 3
+                if jb >= ib and mark[jb] != ib:
+                    mark[jb] = ib
+                    bidx[start + cnt] = jb
+                    cnt += 1
+        bidx[start:start + cnt] = np.sort(bidx[start:start + cnt])
+        for t in range(cnt):
+            slot_of[bidx[start + t]] = start + t
+        bptr[ib + 1] = start + cnt
+        for r in range(3 * ib, 3 * ib + 3):
+            for k in range(indptr[r], indptr[r + 1]):
+                c = indices[k]
+                if c // 3 >= ib:
+                    positions[i] = k
+                    slots[i] = 9 * slot_of[c // 3] + 3 * (r % 3) + c % 3
+                    i += 1
+    return positions, slots, bptr, bidx[:bptr[nb]].copy()
+
+
 class _SymmetricCopy:
     """A symmetric 3 x 3 block (SBAIJ) copy of an AIJ level matrix, refreshed in place.
 
@@ -320,21 +371,9 @@ class _SymmetricCopy:
 
     def __init__(self, source: Any) -> None:
         indptr, indices, values = source.getValuesCSR()
-        n = (indptr.size - 1) // 3
-        rows = np.repeat(np.arange(indptr.size - 1), np.diff(indptr))
-        upper = np.flatnonzero(indices // 3 >= rows // 3)
-        block = (rows[upper] // 3) * n + indices[upper] // 3
-        order = np.argsort(block, kind="stable")
-        self.positions = upper[order]
-        block = block[order]
-        first = np.ones(block.size, dtype=bool)
-        np.not_equal(block[1:], block[:-1], out=first[1:])
-        keys = block[first]
-        slot = (np.cumsum(first) - 1) * 9
-        self.slots = slot + 3 * (rows[self.positions] % 3) + indices[self.positions] % 3
-        self.bptr = np.searchsorted(keys // n, np.arange(n + 1)).astype(PETSc.IntType)
-        self.bidx = (keys % n).astype(PETSc.IntType)
-        self.values = np.zeros(9 * keys.size)
+        self.positions, self.slots, bptr, bidx = _upper_blocks(indptr, indices)
+        self.bptr, self.bidx = bptr.astype(PETSc.IntType), bidx.astype(PETSc.IntType)
+        self.values = np.zeros(9 * bidx.size)
         self.source = source
         self.values[self.slots] = values[self.positions]
         csr: Any = (self.bptr, self.bidx, self.values)

@@ -266,7 +266,8 @@ def other_knobs() -> list[Config]:
           for s in (0.0035, 0.013)]
     c += [Config("body=P2", "body", ("body.degree=2",))]
     c += [Config("two_way", "coupling", ('shell.coupling.mode="two_way"',
-                                         'shell.coupling.scheme="implicit"'))]
+                                         'shell.coupling.scheme="implicit"',
+                                         "shell.coupling.max_iterations=80"))]
     return c + [Config("linear=assembled_mumps", "linear",
                        ('shell.energy.penalty_hessian="assembled"',
                         'shell.newton.linear.backend="mumps"'))]

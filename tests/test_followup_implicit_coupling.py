@@ -18,10 +18,11 @@ import numpy as np
 import pytest
 
 from models.backend import MPI
-from models.coupling import penalty_force, penalty_term
-from models.errors import SolverError
+from models.coupling import CouplingOptions, penalty_force, penalty_term
+from models.errors import InputError, SolverError
 from wrinkles.runner import Run, prepare, run_frames
 from wrinkles.scene import scene_from_dict
+from wrinkles.shell_stage import Anderson
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_shell_stage_physics import LENGTH, SKIN, bar_scene  # noqa: E402
@@ -29,11 +30,12 @@ from test_shell_stage_physics import LENGTH, SKIN, bar_scene  # noqa: E402
 MAX_IT = 60
 
 
-def coupled_scene(scheme: str, aitken: bool = True, max_iterations: int = MAX_IT) -> dict:
+def coupled_scene(scheme: str, acceleration: str = "anderson",
+                  max_iterations: int = MAX_IT) -> dict:
     shell = {"subdivision": {"levels": 1}, "skin": SKIN, "energy": {"k_P": 1.0e3},
              "newton": {"rtol": 1e-8, "max_iterations": 300}, "imperfection": 1e-3,
              "coupling": {"mode": "two_way", "scheme": scheme, "max_iterations": max_iterations,
-                          "aitken": aitken,
+                          "acceleration": acceleration,
                           "rtol": 1e-6, "relaxation": 0.7}}
     return bar_scene((-0.04 * LENGTH, 0.0, 0.0), 1, shell)
 
@@ -128,7 +130,35 @@ def test_explicit_scheme_fails_on_the_same_frame(tmp_path):
 def test_plain_alternation_is_stable_but_slow(tmp_path):
     """Without Aitken the alternation contracts slowly but does not diverge (measured: change
     5.4e-4 after 30 iterations, contraction ~0.95 per iteration)."""
-    rec = run_scheme(tmp_path, "implicit", aitken=False, max_iterations=30).records[-1].details
+    rec = run_scheme(tmp_path, "implicit", acceleration="none",
+                     max_iterations=30).records[-1].details
     print("implicit without Aitken: iterations", rec["coupling_iterations"], "change",
           rec["coupling_change"])
     assert 4e-4 < rec["coupling_change"] < 7e-4  # measured 5.36e-4
+
+
+def test_anderson_solves_a_linear_fixed_point_in_n_plus_one_steps():
+    """On a linear map ``x -> A x + b`` (n = 5, slowest contraction 0.99) Anderson with
+    memory >= n is GMRES in disguise: exact after n + 1 images (error <= 1e-10), where the
+    plain iteration still has 85 % of its initial error."""
+    rng = np.random.default_rng(3)
+    q, _ = np.linalg.qr(rng.standard_normal((5, 5)))
+    a = q @ np.diag([0.99, 0.95, 0.9, 0.5, 0.1]) @ q.T
+    b = rng.standard_normal((5, 1))
+    x_star = np.linalg.solve(np.eye(5) - a, b)
+    x, plain, acc = np.zeros((5, 1)), np.zeros((5, 1)), Anderson(memory=8)
+    for _ in range(6):
+        x = acc.relax(x, a @ x + b)
+        plain = a @ plain + b
+    err = float(np.linalg.norm(x - x_star) / np.linalg.norm(x_star))
+    err_plain = float(np.linalg.norm(plain - x_star) / np.linalg.norm(x_star))
+    print("Anderson error", err, "plain", err_plain)
+    assert err <= 1e-10
+    assert err_plain > 0.5
+
+
+@pytest.mark.parametrize(("field", "value"), [("acceleration", "secant"), ("memory", 0)])
+def test_coupling_options_reject_bad_acceleration(field, value):
+    """Bad acceleration options raise InputError naming the field."""
+    with pytest.raises(InputError, match=f"shell.coupling.{field}"):
+        CouplingOptions(**{field: value})

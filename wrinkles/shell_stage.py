@@ -211,6 +211,8 @@ class Shell:
             coupling; zero otherwise).
         coupling: constant part of the implicit coupling term (built on first use,
             :func:`penalty_coupling`).
+        start_repaired: vertices the last warm start pulled towards the target because a
+            face was turned over against the target's normals (:func:`admissible_start`).
 
     """
 
@@ -229,6 +231,7 @@ class Shell:
     facts: dict[str, Any] = field(default_factory=dict)
     force: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     coupling: PenaltyCoupling | None = None
+    start_repaired: int = 0
 
     def __post_init__(self) -> None:
         if self.force.shape != self.rest.shape:
@@ -300,6 +303,61 @@ def _minimize(shell: Shell, x0: np.ndarray) -> tuple[np.ndarray, ShellSolveRepor
         raise SolverError(f"shell solve failed: {exc}") from None
 
 
+START_HALVINGS: int = 40
+"""Halvings of a turned-over face's offsets in :func:`admissible_start` before they are zeroed."""
+
+
+def _turned_over(energy: ShellEnergy, x: np.ndarray) -> np.ndarray:
+    """Faces (indices into the topology) whose flip barrier is +inf at ``x`` (s <= 0)."""
+    ev = energy.evaluate(x, order=0)
+    vals = ev.elements.get("flip_barrier")
+    if np.isfinite(ev.value) or vals is None:
+        return np.zeros(0, dtype=np.int64)
+    return energy.flip_faces[~np.isfinite(vals)]
+
+
+def admissible_start(energy: ShellEnergy, x0: np.ndarray, anchor: np.ndarray
+                     ) -> tuple[np.ndarray, int]:
+    """Return a warm start with a finite flip barrier and the number of vertices it moved.
+
+    The warm start ``x_prev + (y - y_prev)`` carries the previous offset from the target onto
+    the new target ``y``, but the barrier's reference normals are the face normals of ``y``
+    (:meth:`models.shell.energy.ShellEnergy.set_target`): a face that ended the previous
+    solve close to the barrier (s ~ 0.01, a wrinkle fold standing at ~90 degrees to its
+    target face) is turned over against the new normals (s <= 0, W = +inf) when the target
+    rotates under it, e.g. when two-way coupling moves the body. Measured on
+    scenes/default.toml two-way implicit, frame 2: min s = 0.0104 after the first shell
+    solve, -0.055 at the next iteration's warm start.
+
+    Repair: for each face whose barrier is +inf, the offsets ``x0 - anchor`` of its three
+    vertices are halved, repeated until no face is turned over (after
+    :data:`START_HALVINGS` halvings they are set to 0). The anchor (the target plus the
+    imperfection) has ``s > 0`` on every face whose target face is not degenerate, so only
+    the vertices around the turned-over faces move and the wrinkles elsewhere are kept. A
+    start that is admissible is returned unchanged (the same array: bitwise the old warm
+    start, so one-way runs that never hit this are unchanged).
+
+    Raises:
+        SolverError: a face is turned over even at the anchor (degenerate target face).
+
+    """
+    bad = _turned_over(energy, x0)
+    if bad.size == 0:
+        return x0, 0
+    x = np.array(x0, dtype=np.float64, copy=True)
+    faces = energy.topology.faces
+    for halving in range(START_HALVINGS + 1):
+        verts = np.unique(faces[bad])
+        factor = 0.5 if halving < START_HALVINGS else 0.0
+        x[verts] = anchor[verts] + factor * (x[verts] - anchor[verts])
+        bad = _turned_over(energy, x)
+        if bad.size == 0:
+            return x, int(np.any(x != x0, axis=1).sum())
+    raise SolverError(f"shell warm start: face {int(bad[0])} {faces[bad[0]].tolist()} is turned "
+                      f"over against its target normal even at the target (degenerate target "
+                      f"face?)")
+
+
 def solve_shell(shell: Shell, y: np.ndarray, frame: int, comm: MPI.Comm,
                 perturb: bool = True) -> ShellSolveReport:
     """Move the target to ``y``, warm-start, minimise, take rank 0's x (collective).
@@ -309,10 +367,14 @@ def solve_shell(shell: Shell, y: np.ndarray, frame: int, comm: MPI.Comm,
     :func:`models.backend.begin_petsc_log`, but would leave the other ranks idle), then
     rank 0's result is broadcast so all ranks hold bitwise the same shell. ``perturb =
     False`` leaves out the imperfection (repeated solves of one frame in the coupling
-    iteration).
+    iteration). A warm start with a face turned over against the new target's normals is
+    repaired first (:func:`admissible_start`; ``shell.start_repaired`` counts the vertices
+    moved).
     """
-    x0 = shell.x + (y - shell.y) + (imperfection(shell, frame) if perturb else 0.0)
+    eta = imperfection(shell, frame) if perturb else 0.0
+    x0 = shell.x + (y - shell.y) + eta
     shell.energy.set_target(y)
+    x0, shell.start_repaired = admissible_start(shell.energy, x0, y + eta)
     x, report = _minimize(shell, x0)
     shell.x, shell.y = np.asarray(comm.bcast(x, root=0)), y
     return report
@@ -336,7 +398,7 @@ def shell_record(shell: Shell, report: ShellSolveReport) -> StageRecord:
     return {"shell_iterations": report.iterations, "shell_converged": report.converged,
             "shell_energy": ev.value, "shell_terms": dict(ev.terms),
             "shell_grad_norm": report.grad_norm, "shell_tolerance": report.tolerance,
-            "wrinkle_amplitude": amplitude,
+            "shell_start_repaired": shell.start_repaired, "wrinkle_amplitude": amplitude,
             "wrinkle_amplitude_rel": amplitude / shell.edge_length,
             "max_distance_to_target": total,
             "shell_time_evaluate": report.time_evaluate,
@@ -469,7 +531,7 @@ def two_way_stage(shell: Shell, body: Body, steps: int,
         saved, x_start, y_start = body.snapshot(), shell.x.copy(), shell.y.copy()
         record = dict(body_stage(frame))
         report = solve_shell(shell, target(shell, body), frame, comm)
-        change, k = float("inf"), 0
+        change, k, repaired = float("inf"), 0, shell.start_repaired
         for k in range(1, opts.max_iterations + 1):  # noqa: B007  (k is reported)
             u_old = body.u.x.array.copy()
             feed_back(shell, body)
@@ -478,10 +540,11 @@ def two_way_stage(shell: Shell, body: Body, steps: int,
             record = dict(body_stage(frame))
             change = _relative_change(comm, body.u.x.array, u_old)
             report = solve_shell(shell, target(shell, body), frame, comm)
+            repaired += shell.start_repaired
             if change <= opts.rtol:
                 break
         write(frame, body.t)
-        return {**record, **shell_record(shell, report),
+        return {**record, **shell_record(shell, report), "shell_start_repaired": repaired,
                 **coupling_record(shell, body, k, change)}
 
     return stage
@@ -538,21 +601,91 @@ class Aitken:
         return x + self.omega * r
 
 
+@dataclass
+class Anderson:
+    """Anderson acceleration of a fixed-point iteration ``x -> G(x)`` (IQN-ILS).
+
+    Anderson 1965; Degroote, Bathe & Vierendeels 2009 (interface quasi-Newton with an
+    inverse Jacobian from a least-squares model) for partitioned coupling. With the
+    residuals ``r_i = G(x_i) - x_i`` and the differences ``dR_i = r_{i+1} - r_i``,
+    ``dG_i = G(x_{i+1}) - G(x_i)`` of the last ``memory`` iterations,
+
+        gamma = argmin |r_k - dR gamma|,     x_{k+1} = G(x_k) - dG gamma,
+
+    (the first step is the plain ``x_1 = G(x_0)``): the secants of all ``memory`` slow modes
+    at once, where :class:`Aitken` fits one scalar factor to all of them.
+
+    Attributes:
+        memory: number of difference columns kept, >= 1.
+        rcond: relative singular value below which the least-squares problem drops a
+            direction (``numpy.linalg.lstsq``).
+        residuals: previous residuals ``r_i`` (oldest first, at most ``memory + 1``).
+        images: previous images ``G(x_i)``, aligned with ``residuals``.
+        gamma: coefficients of the last step (diagnostics).
+
+    """
+
+    memory: int = 8
+    rcond: float = 1e-10
+    residuals: list[np.ndarray] = field(default_factory=list)
+    images: list[np.ndarray] = field(default_factory=list)
+    gamma: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def relax(self, x: np.ndarray, gx: np.ndarray) -> np.ndarray:
+        """Return the next iterate from ``x_k`` and ``G(x_k)``."""
+        r = (gx - x).reshape(-1)
+        g = np.asarray(gx).reshape(-1)
+        self.residuals.append(r)
+        self.images.append(g)
+        del self.residuals[:-(self.memory + 1)], self.images[:-(self.memory + 1)]
+        if len(self.residuals) < 2:
+            self.gamma = np.zeros(0)
+            return np.array(gx, dtype=np.float64, copy=True)
+        dR = np.diff(np.stack(self.residuals, axis=1), axis=1)
+        dG = np.diff(np.stack(self.images, axis=1), axis=1)
+        self.gamma = np.linalg.lstsq(dR, r, rcond=self.rcond)[0]
+        return (g - dG @ self.gamma).reshape(np.shape(gx))
+
+
+def accelerator(options: CouplingOptions) -> Aitken | Anderson | None:
+    """Return the accelerator of ``options.acceleration`` (``None``: plain alternation)."""
+    if options.acceleration == "aitken":
+        return Aitken()
+    if options.acceleration == "anderson":
+        return Anderson(memory=options.memory)
+    return None
+
+
 def implicit_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mapping[str, Any]],
                    write: Writer) -> Callable[[int], StageRecord]:
     """Stage replacing body + shell: alternate minimisation of body and shell energies.
 
-    Iteration ``k`` redoes the frame's body steps from the saved state with the penalty of
-    the current shell ``x_{k-1}`` as an implicit quadratic term (its constant matrix built
-    once, :func:`penalty_coupling`; :func:`models.coupling.penalty_term`), then
-    solves the shell for the new target: block Gauss-Seidel on the total energy
-    ``Pi(u) + W(x, y(u))``, each half-step a minimisation, so the total energy decreases
-    monotonically. Ends when ``max|u_k - u_{k-1}| <= rtol max|u_k|`` or ``max_iterations``.
-    The record's ``coupling_force_body`` is the term's total force on the body (equal to
-    ``coupling_force_shell = sum_i f_i`` since the rows of B sum to 1). With
-    ``coupling.aitken`` the shell iterate is relaxed by :class:`Aitken` between iterations
-    (the plain alternation contracts by ~0.95 per iteration on the 1000x-skin bar of
-    ``tests/test_followup_implicit_coupling.py``; 31 iterations with Aitken).
+    Iteration ``k`` redoes the frame's body steps from the saved state with the penalty as an
+    implicit quadratic term ``1/2 u^T K u - c_k^T u`` (its constant matrix built once,
+    :func:`penalty_coupling`; :func:`models.coupling.penalty_term`), then solves the shell
+    for the new target. Without acceleration ``c_k = M (x_{k-1} - X_T)`` of the last shell:
+    block Gauss-Seidel on the total energy ``Pi(u) + W(x, y(u))``, each half-step a
+    minimisation, so the total energy decreases monotonically. Ends when
+    ``max|u_k - u_{k-1}| <= rtol max|u_k|`` or ``max_iterations``. The record's
+    ``coupling_force_body`` is the term's total force on the body (equal to
+    ``coupling_force_shell = sum_i f_i`` since the rows of B sum to 1).
+
+    The alternation converges linearly and slowly, since the skin and the soft body are
+    strongly coupled through the penalty: measured contraction per iteration ~0.95 on the
+    1000x-skin bar of ``tests/test_followup_implicit_coupling.py``, ~0.90 and ~0.977 on
+    frames 1 and 2 of scenes/default.toml (2 frames, 1 subdivision level). ``coupling.
+    acceleration`` therefore extrapolates the body load ``c`` (all the body sees of the
+    shell, ``3 n_b`` numbers; the shell keeps its own solved state as the next warm start)
+    with :class:`Anderson` (default) or :class:`Aitken`: measured on that default-scene run,
+    Anderson reaches ``rtol = 1e-6`` in 36 and 60 iterations; Aitken on the shell iterate
+    (the previous scheme) stalled (2.9e-4 after 25 iterations on frame 1, factors jumping
+    between 1 and 8.5), as did Anderson on the shell iterate (2.3e-5 after 30 iterations:
+    the secants then also fit the shell's sliding and wrinkle modes that the body does not
+    see). Not the cause (measured):
+    the shell tolerance (shell ``rtol`` 1e-10 instead of 1e-6 gives the same iterates to 3
+    digits) and wrinkle flips (none); frame 2 has isolated shell re-arrangements (a solve of
+    17-38 Newton iterations moving a vertex by 2-6 mm against ~0.2 mm otherwise) that cost
+    Anderson its secant history.
     """
     opts, comm = shell.options.coupling, body.mesh.comm
 
@@ -561,23 +694,27 @@ def implicit_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mapping
         coupling = penalty_coupling(shell, body)
         record: dict[str, Any] = {}
         report = None
-        aitken = Aitken()
+        accel = accelerator(opts)
+        repaired = 0
+        load = coupling.load(shell.x - shell.rest)
         for k in range(1, opts.max_iterations + 1):  # noqa: B007  (k is reported)
-            x_in = shell.x.copy()
             u_old = body.u.x.array.copy()
-            body.set_quadratic_energy(coupling.term(shell.x - shell.rest))
+            body.set_quadratic_energy(coupling.load_term(load,
+                                                         coupling.energy(shell.x - shell.rest)))
             body.restore(saved)
             record = dict(body_stage(frame))
             change = _relative_change(comm, body.u.x.array, u_old)
             report = solve_shell(shell, target(shell, body), frame, comm, perturb=k == 1)
+            repaired += shell.start_repaired
             if change <= opts.rtol:
                 break
-            if opts.aitken:
-                shell.x = aitken.relax(x_in, shell.x)
+            image = coupling.load(shell.x - shell.rest)
+            load = image if accel is None else accel.relax(load, image)
         assert report is not None  # max_iterations >= 1
         shell.force = penalty_force(coupling.op, shell.params.k_P, shell.x, shell.y)
         write(frame, body.t)
-        return {**record, **shell_record(shell, report), "coupling_iterations": k,
+        return {**record, **shell_record(shell, report), "shell_start_repaired": repaired,
+                "coupling_iterations": k,
                 "coupling_change": change,
                 "coupling_force_shell": shell.force.sum(axis=0).tolist(),
                 "coupling_force_body": coupled_force(shell, body)}
@@ -585,6 +722,7 @@ def implicit_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mapping
     return stage
 
 
-__all__ = ["Shell", "ShellOptions", "SkinOptions", "apply_force", "build_shell", "make_writer",
+__all__ = ["Aitken", "Anderson", "Shell", "ShellOptions", "SkinOptions", "accelerator",
+           "apply_force", "build_shell", "make_writer",
            "one_way_stage", "restore_shell", "shell_arrays", "shell_record", "solve_shell",
            "target", "two_way_stage", "implicit_stage"]

@@ -41,9 +41,6 @@ import os
 import platform
 import subprocess
 import sys
-import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -52,6 +49,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
+from benchmarks.scaling import Timings, stopwatch  # noqa: E402
+from benchmarks.shell_solve import proc_status_mib  # noqa: E402
 from meshes.shells import grid_plate  # noqa: E402
 from models.embedding.clusters import (  # noqa: E402
     edge_graph,
@@ -67,28 +66,11 @@ SIZES: dict[str, int] = {"2.5k": 50, "10k": 100, "40k": 200, "160k": 400, "640k"
 CLUSTER_RATIO = 75  # vertices per cluster (as benchmarks.scaling)
 BUILD_STAGES = ("edge_graph", "centres_fps", "gaussian_weights", "partition",
                 "min_singular_value")
-Timings = dict[str, dict[str, float]]
 STAGE_COLUMNS = ("edge_graph", "centres_fps", "gaussian_weights", "partition",
                  "min_singular_value", "build_clusters", "centres_bfs")
 SHORT = {"edge_graph": "graph", "centres_fps": "fps", "gaussian_weights": "weights",
          "partition": "partition", "min_singular_value": "svd", "build_clusters": "build",
          "centres_bfs": "bfs"}
-
-
-@contextmanager
-def stopwatch(store: Timings, name: str) -> Iterator[None]:
-    """Record the wall and process CPU seconds of the ``with`` body as ``store[name]``."""
-    wall, cpu = time.perf_counter(), time.process_time()
-    yield
-    store[name] = {"wall": time.perf_counter() - wall, "cpu": time.process_time() - cpu}
-
-
-def peak_mib() -> float:
-    """Peak resident set size of this process (VmHWM) in MiB."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024.0
-    return float("nan")
 
 
 def stages(cells: int, t: Timings, bfs: bool = True) -> dict:
@@ -120,8 +102,9 @@ def run_one(size: str, label: str, bfs: bool) -> dict:
     stages(20, Timings())  # warm-up: numba compilation / cache load
     load_start, t = os.getloadavg(), Timings()
     summary = stages(SIZES[size], t, bfs)
-    return {"size": size, "label": label, **summary, "stages": t, "peak_mib": peak_mib(),
-            "load_start": load_start, "load_end": os.getloadavg()}
+    return {"size": size, "label": label, **summary, "stages": t,
+            "peak_mib": proc_status_mib("VmHWM"), "load_start": load_start,
+            "load_end": os.getloadavg()}
 
 
 def run_in_subprocess(size: str, label: str, timeout: float, bfs: bool) -> dict | None:

@@ -66,6 +66,21 @@ iterations (374 -> 193 for fixed 1e-4, same 6 Newton iterations, 5.8 s per itera
 with Eisenstat-Walker it needs 8 Newton iterations (4.0 s each, 32 s in all against 30 s).
 The issue's 2 s per Newton iteration is not reached on that frame.
 
+Why, measured in session 4 on that frame (benchmarks/iterative.py, 160k, exact Hessian):
+the CG residual falls steadily by ~0.03 decades per iteration, and 200 CG steps on the last
+Newton system give Ritz values of the multigrid-preconditioned operator that fill
+[0.0014, 1] continuously (11 below 0.01, 21 below 0.03, 40 below 0.1, 74 below 0.3): a
+whole band of wrinkle modes is soft (compression balances bending) and oscillatory at the
+fine scale, like the near-kernel of a Helmholtz operator, so neither smoothing nor a coarse
+level reaches it. Tried and not adopted (CG iterations of the three longest solves, base
+82 / 43 / 89, and CPU per Newton iteration, base 5.5 s, machine load ~2): point-block 3 x 3
+Jacobi 71 / 50 / 67 (6.7 s), Chebyshev degree 3 73 / 36 / 62 (6.1 s), the interpolatory
+butterfly prolongation (exact for cubics, Hemker's order condition for a fourth-order
+operator) 77 / 51 / 71 (8.3 s, denser Galerkin levels), and deflated CG recycling 40 or 80
+Ritz vectors of the previous solves (at 40k: 162 -> 141 / 125 CG iterations, 1.5-1.9x the
+CPU time). On the flat start with the Gauss-Newton Hessian the same options need 58 CG
+iterations for 8 Newton iterations (see the README for the time per iteration).
+
 Inexact Newton: with ``forcing = "eisenstat_walker"`` the CG tolerance of Newton iteration k is
 Eisenstat & Walker's choice 2 (SIAM J. Sci. Comput. 17, 1996, eq. 2.6 with the safeguard of
 sec. 3), ``eta_k = gamma (||g_k|| / ||g_{k-1}||)^alpha``, bounded below by

@@ -135,12 +135,15 @@ def default_runs(tmp_path_factory) -> dict[str, Path]:
     """scenes/default.toml on the coarse settings, one-way and two-way implicit."""
     outs = {}
     two_way = (*TWO_WAY, "--set", f"shell.coupling.max_iterations={COUPLING_IT}")
-    for mode, extra in (("one_way", ()), ("two_way", two_way)):
+    capped = (*TWO_WAY, "--set", "shell.coupling.max_iterations=3")
+    for mode, extra in (("one_way", ()), ("two_way", two_way), ("capped", capped)):
         out = tmp_path_factory.mktemp(mode) / "out"
         proc = wrinkles("run", str(REPO / "scenes" / "default.toml"), "--out", str(out),
                         *COARSE, *extra)
         assert proc.returncode == 0, proc.stderr  # two-way: exit 2, W = inf before the repair
-        assert len([ln for ln in proc.stdout.splitlines() if ln.startswith("frame")]) == 2
+        lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("frame")]
+        assert len(lines) == 2
+        (out / "progress.txt").write_text("\n".join(lines))
         outs[mode] = out
     return outs
 
@@ -195,3 +198,22 @@ def test_default_scene_two_way_differs_from_one_way(default_runs):
     moved = float(np.abs(y["two_way"] - y["one_way"]).max())
     print("max |y_two_way - y_one_way| =", moved)
     assert 0.15 * 0.02 < moved < 0.35 * 0.02
+
+
+def test_unconverged_coupling_is_flagged(default_runs):
+    """A frame stopped by ``max_iterations`` above ``rtol`` is kept but flagged, in the
+    summary (``coupling_converged``) and on its progress line; converged frames say only the
+    iteration count, one-way frames nothing."""
+    for mode, converged in (("two_way", True), ("capped", False)):
+        recs = frames(default_runs[mode])
+        lines = (default_runs[mode] / "progress.txt").read_text().splitlines()
+        for rec, line in zip(recs, lines, strict=True):
+            d = rec["details"]
+            print(mode, line)
+            assert d["coupling_converged"] is converged
+            assert (d["coupling_change"] <= 1e-6) is converged
+            assert f"coupling={d['coupling_iterations']}" in line
+            assert ("NOT converged" in line) is not converged
+        if not converged:
+            assert [r["details"]["coupling_iterations"] for r in recs] == [3, 3]
+    assert "coupling" not in (default_runs["one_way"] / "progress.txt").read_text()

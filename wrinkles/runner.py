@@ -117,10 +117,19 @@ class FrameRecord:
     details: dict[str, Any] = field(default_factory=dict)
 
     def progress_line(self, n_frames: int) -> str:
-        """Return the one-line progress report printed by rank 0."""
-        return (f"frame {self.frame:4d}/{n_frames}  t={self.time:9.4f} s  "
+        """Return the one-line progress report printed by rank 0.
+
+        Two-way frames add ``coupling=<iterations>`` and, when the body/shell fixed point
+        stopped at ``max_iterations`` above its tolerance, ``NOT converged (change ...)``.
+        """
+        line = (f"frame {self.frame:4d}/{n_frames}  t={self.time:9.4f} s  "
                 f"newton={self.newton_iterations:3d}  energy={self.energy: .6e} J  "
                 f"min detF={self.min_det_f:.4f}  wall={self.wall_time:7.3f} s")
+        if "coupling_iterations" in self.details:
+            line += f"  coupling={self.details['coupling_iterations']}"
+            if not self.details.get("coupling_converged", True):
+                line += f" NOT converged (change {self.details['coupling_change']:.1e})"
+        return line
 
 
 # --------------------------------------------------------------------------------------------

@@ -508,12 +508,17 @@ def feed_back(shell: Shell, body: Body) -> None:
     apply_force(shell, body)
 
 
-def coupling_record(shell: Shell, body: Body, iterations: int,
-                    change: float) -> StageRecord:
-    """Two-way coupling numbers: iterations, last relative change, the two total forces."""
+def coupling_record(shell: Shell, iterations: int, change: float, rtol: float,
+                    force_body: list[float]) -> StageRecord:
+    """Two-way coupling numbers: iterations, last relative change, converged, total forces.
+
+    ``coupling_converged`` is False when the frame stopped at ``max_iterations`` with the
+    change above ``rtol`` (the progress line then says so: the frame is kept, unconverged).
+    """
     return {"coupling_iterations": iterations, "coupling_change": change,
+            "coupling_converged": bool(change <= rtol),
             "coupling_force_shell": shell.force.sum(axis=0).tolist(),
-            "coupling_force_body": body.applied_load().tolist()}
+            "coupling_force_body": force_body}
 
 
 def two_way_stage(shell: Shell, body: Body, steps: int,
@@ -545,7 +550,7 @@ def two_way_stage(shell: Shell, body: Body, steps: int,
                 break
         write(frame, body.t)
         return {**record, **shell_record(shell, report), "shell_start_repaired": repaired,
-                **coupling_record(shell, body, k, change)}
+                **coupling_record(shell, k, change, opts.rtol, body.applied_load().tolist())}
 
     return stage
 
@@ -714,10 +719,7 @@ def implicit_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mapping
         shell.force = penalty_force(coupling.op, shell.params.k_P, shell.x, shell.y)
         write(frame, body.t)
         return {**record, **shell_record(shell, report), "shell_start_repaired": repaired,
-                "coupling_iterations": k,
-                "coupling_change": change,
-                "coupling_force_shell": shell.force.sum(axis=0).tolist(),
-                "coupling_force_body": coupled_force(shell, body)}
+                **coupling_record(shell, k, change, opts.rtol, coupled_force(shell, body))}
 
     return stage
 

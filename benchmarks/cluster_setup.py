@@ -49,7 +49,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from benchmarks.scaling import Timings, stopwatch  # noqa: E402
+from benchmarks.scaling import Timings, power_fit, stopwatch  # noqa: E402
 from benchmarks.shell_solve import proc_status_mib  # noqa: E402
 from meshes.shells import grid_plate  # noqa: E402
 from models.embedding.clusters import (  # noqa: E402
@@ -123,15 +123,6 @@ def run_in_subprocess(size: str, label: str, timeout: float, bfs: bool) -> dict 
               flush=True)
         return None
     return json.loads(lines[-1])
-
-
-def power_fit(n: np.ndarray, y: np.ndarray) -> dict[str, float | list[float]]:
-    """Least-squares ``log y = p log n + c`` and the local slopes between consecutive sizes."""
-    ln, ly = np.log(n), np.log(y)
-    p, c = np.polyfit(ln, ly, 1)
-    res = ly - (p * ln + c)
-    return {"p": float(p), "c": float(c), "max_log_residual": float(np.max(np.abs(res))),
-            "local": [float(s) for s in np.diff(ly) / np.diff(ln)]}
 
 
 def exponents(rows: list[dict]) -> dict[str, dict[str, dict]]:

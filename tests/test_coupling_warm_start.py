@@ -12,15 +12,13 @@ turned-over faces back towards the target and leaves every other vertex bitwise 
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
+from test_cli_run import wrinkles
 
 from meshes.shells import grid_plate
 from models.errors import SolverError
@@ -121,13 +119,6 @@ def test_admissible_start_refuses_a_degenerate_target() -> None:
     energy.set_target(y)
     with pytest.raises(SolverError, match="turned over .* even at the target"):
         admissible_start(energy, y, y)
-
-
-def wrinkles(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    """Run ``python -m wrinkles ARGS`` in a subprocess (serial)."""
-    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-    return subprocess.run([sys.executable, "-m", "wrinkles", *args], capture_output=True,
-                          text=True, timeout=timeout, cwd=REPO, env=env)
 
 
 @pytest.fixture(scope="module")

@@ -28,14 +28,16 @@ from models.shell.rest import RestState
 from models.shell.topology import ShellTopology
 from solvers.shell_newton import ShellNewtonSolver
 from wrinkles.checkpoint import CHECKPOINT_NAME, read_state
+from wrinkles.scene import load_scene, scene_dict
 from wrinkles.shell_stage import admissible_start
 
 REPO = Path(__file__).resolve().parents[1]
 COARSE = ("--frames", "2", "--set", "body.dt=0.5", "--set", "shell.subdivision.levels=1",
           "--set", "shell.render=false")
 """The default scene's 10 % compression in 2 frames on one subdivision level (654 vertices)."""
-TWO_WAY = ("--set", 'shell.coupling.mode="two_way"', "--set", 'shell.coupling.scheme="implicit"')
-COUPLING_IT = 80
+TWO_WAY_SCENE = REPO / "scenes" / "two_way_bar.toml"
+"""scenes/default.toml with two-way implicit coupling (max_iterations 100)."""
+COUPLING_IT = 100
 """Coupling iterations allowed on the coarse two-way run (Anderson needs 36 and ~58, measured)."""
 
 
@@ -125,12 +127,12 @@ def test_admissible_start_refuses_a_degenerate_target() -> None:
 def default_runs(tmp_path_factory) -> dict[str, Path]:
     """scenes/default.toml on the coarse settings, one-way and two-way implicit."""
     outs = {}
-    two_way = (*TWO_WAY, "--set", f"shell.coupling.max_iterations={COUPLING_IT}")
-    capped = (*TWO_WAY, "--set", "shell.coupling.max_iterations=3")
-    for mode, extra in (("one_way", ()), ("two_way", two_way), ("capped", capped)):
+    default = REPO / "scenes" / "default.toml"
+    capped = ("--set", "shell.coupling.max_iterations=3")
+    for mode, scene, extra in (("one_way", default, ()), ("two_way", TWO_WAY_SCENE, ()),
+                               ("capped", TWO_WAY_SCENE, capped)):
         out = tmp_path_factory.mktemp(mode) / "out"
-        proc = wrinkles("run", str(REPO / "scenes" / "default.toml"), "--out", str(out),
-                        *COARSE, *extra)
+        proc = wrinkles("run", str(scene), "--out", str(out), *COARSE, *extra)
         assert proc.returncode == 0, proc.stderr  # two-way: exit 2, W = inf before the repair
         lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("frame")]
         assert len(lines) == 2
@@ -208,3 +210,14 @@ def test_unconverged_coupling_is_flagged(default_runs):
         if not converged:
             assert [r["details"]["coupling_iterations"] for r in recs] == [3, 3]
     assert "coupling" not in (default_runs["one_way"] / "progress.txt").read_text()
+
+
+def test_two_way_scene_is_the_default_scene_coupled():
+    """scenes/two_way_bar.toml differs from scenes/default.toml only in its title and its
+    [shell.coupling] table (resolved scenes compared key by key)."""
+    one = scene_dict(load_scene(REPO / "scenes" / "default.toml"))
+    two = scene_dict(load_scene(TWO_WAY_SCENE))
+    coupling = (two["shell"].pop("coupling"), one["shell"].pop("coupling"))
+    assert coupling[0]["mode"] == "two_way" and coupling[0]["scheme"] == "implicit"
+    assert coupling[1]["mode"] == "one_way"
+    assert {k for k in one if one[k] != two[k]} == {"title"}

@@ -221,3 +221,22 @@ def test_two_way_scene_is_the_default_scene_coupled():
     assert coupling[0]["mode"] == "two_way" and coupling[0]["scheme"] == "implicit"
     assert coupling[1]["mode"] == "one_way"
     assert {k for k in one if one[k] != two[k]} == {"title"}
+
+
+@pytest.mark.mpi
+def test_two_way_scene_on_two_ranks_matches_serial(default_runs, mpiexec, tmp_path):
+    """The coarse two-way run on 2 ranks: the same coupling iterations and body energies as
+    the serial run to the coupling tolerance (measured: 36 / 60 iterations on both, energies
+    equal to 2.0e-13 and 2.9e-9 relative, frames 1 / 2)."""
+    out = tmp_path / "out"
+    proc = mpiexec(["-m", "wrinkles", "run", str(TWO_WAY_SCENE), "--out", str(out), *COARSE],
+                   n=2, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    for serial, parallel in zip(frames(default_runs["two_way"]), frames(out), strict=True):
+        print(serial["frame"], serial["energy"], parallel["energy"])
+        assert parallel["details"]["coupling_converged"]
+        assert parallel["details"]["coupling_iterations"] == \
+            serial["details"]["coupling_iterations"]
+        assert parallel["energy"] == pytest.approx(serial["energy"], rel=1e-7)
+        assert parallel["details"]["shell_energy"] == pytest.approx(
+            serial["details"]["shell_energy"], rel=1e-7)

@@ -25,7 +25,8 @@ with the reference at the final frame:
 
 Knobs (:data:`GROUP_ORDER`, most important first): subdivision levels, Hessian mode (exact,
 gauss_newton, mixed = projected far from the minimum then exact), PSD Hessian + loose
-tolerance combinations, shell Newton tolerance, body mesh size, body P1/P2, time step
+tolerance combinations, the shifted-Hessian schedule (the solver's ten-fold factors), shell
+Newton tolerance, body mesh size, body P1/P2, time step
 (statics: load frames; dynamics: steps per frame at a fixed frame interval), cluster count
 and sigma, one- vs two-way (implicit) coupling, assembled-penalty linear solver, and on
 request (``--only newton_cap``) the iteration cap. Knobs measured as dominated or
@@ -186,7 +187,7 @@ HESSIANS: dict[str, tuple[str, ...]] = {
 }
 """Hessian modes of the sweep: mixed = projected far from the minimum, then exact."""
 
-GROUP_ORDER: tuple[str, ...] = ("base", "subdivision", "hessian", "combo", "newton_rtol",
+GROUP_ORDER: tuple[str, ...] = ("base", "subdivision", "hessian", "combo", "shift", "newton_rtol",
                                 "mesh", "body", "time", "clusters", "sigma", "coupling",
                                 "linear", "newton_cap")
 """Knob groups in the order they run (most important first: a run cut short by the
@@ -227,6 +228,15 @@ def hessian_knobs(facts: SceneFacts) -> list[Config]:
     own = "mixed" if facts.far_hessian == "projected" else facts.hessian
     return [Config(f"hessian={m}", "hessian", HESSIANS[m])
             for m in ("exact", "gauss_newton", "mixed") if m != own]
+
+
+def shift_knobs() -> list[Config]:
+    """The solver's default ten-fold shift schedule (growth 10, decay 10) against the presets' 5 / 2
+    (:class:`solvers.linear.ShiftOptions`, ``benchmarks/shift_schedule.py``): the same
+    tolerance, but a path of other step lengths may settle in another wrinkle branch."""
+    return [Config("shift=10/10", "shift", ("shell.newton.shift.growth=10.0",
+                                            "shell.newton.shift_decay=10.0",
+                                            "shell.newton.shift.max_shifts=14"))]
 
 
 def newton_knobs(facts: SceneFacts) -> list[Config]:
@@ -307,7 +317,8 @@ def sweep(levels: list[int], facts: SceneFacts, only: list[str] | None,
     Without ``only`` the group "newton_cap" is left out (see :data:`DROPPED`).
     """
     configs = [Config("base", "base"), *subdivision_knobs(levels, facts),
-               *hessian_knobs(facts), *newton_knobs(facts), *mesh_knobs(facts, mesh_h),
+               *hessian_knobs(facts), *shift_knobs(), *newton_knobs(facts),
+               *mesh_knobs(facts, mesh_h),
                *time_knobs(facts), *other_knobs(), *reference_body(ref_extra or [], levels, facts),
                *combinations(facts, levels)]
     wanted = set(only) if only else set(GROUP_ORDER) - {"newton_cap"}
@@ -467,7 +478,7 @@ def reference_path(results: Path, scene: Path, quick: bool) -> Path:
 
 def reference_key(scene: Path, overrides: list[str]) -> str:
     """The settings a stored reference (and a resumed row) must match."""
-    return json.dumps({"scene": str(scene.resolve()), "overrides": overrides, "version": 4})
+    return json.dumps({"scene": str(scene.resolve()), "overrides": overrides, "version": 5})
 
 
 def load_or_make_reference(path: Path, scene: Path, overrides: list[str],

@@ -184,8 +184,27 @@ class ShiftOptions:
 
     Attributes:
         initial: First shift relative to the mean absolute diagonal (dimensionless).
-        growth: Factor between consecutive shifts (> 1).
-        max_shifts: Number of shifted attempts before giving up (>= 1).
+        growth: Factor between consecutive shifts (> 1). The textbook 10 is the default
+            (the unit and decomposition tests pin minima reached along its paths); the
+            quality presets (:mod:`wrinkles.presets`) and the wrinkle scenes select 5 with
+            ``ShellNewtonOptions.shift_decay = 2`` and ``max_shifts = 20``: a shift up to
+            ``growth`` times larger than the smallest one that makes ``A + tau I`` positive
+            definite shortens the step in every soft direction, and far from a wrinkled
+            minimum the shell Newton takes dozens of such steps. Measured
+            (``python benchmarks/shift_schedule.py``, benchmarks/results/shift_schedule.json,
+            shell Newton wall time of whole runs, 2026-11-25, load ~2): growth / decay
+            10 / 10 -> 5 / 2 takes scenes/default.toml from 272 to 169 iterations (528 ->
+            253 factorisations) and 27.1 to 13.0 s, bent_bar 23.0 -> 14.4 s,
+            twisted_cylinder 27.8 -> 18.3 s (the three: 78.0 -> 45.7 s); 6 / 2 50.2 s,
+            3 / 3 52.7 s, 4 / 4 53.6 s, 8 / 3 (IPOPT's factors) 55.1 s, 4 / 2 55.5 s,
+            3 / 1.5 64.0 s, 2 / 1.5 69.6 s. The easy frames of scenes/ball_sofa_coarse.toml
+            would pay for it (14.7 -> 18.1 s, 45 -> 52 iterations), so that scene keeps
+            10 / 10. A path of other step lengths may settle in another wrinkle branch: on
+            the plate of tests/test_shift_schedule.py 5 / 2 reaches W = 4.72421 in 34
+            iterations where 10 / 10 reaches 4.75496 in 80.
+        max_shifts: Number of shifted attempts before giving up (>= 1): the largest shift is
+            ``initial * growth^(max_shifts - 1)`` x the mean diagonal (1e7 with the defaults;
+            20 attempts at growth 5 reach 1.9e7).
 
     """
 

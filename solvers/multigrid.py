@@ -80,6 +80,14 @@ operator) 77 / 51 / 71 (8.3 s, denser Galerkin levels), and deflated CG recyclin
 Ritz vectors of the previous solves (at 40k: 162 -> 141 / 125 CG iterations, 1.5-1.9x the
 CPU time). On the flat start with the Gauss-Newton Hessian the same options need 58 CG
 iterations for 8 Newton iterations (see the README for the time per iteration).
+Session 5 (quiet machine): Loop-subdivision prolongations on the same (linearly subdivided)
+mesh, a C^2 box-spline coarse space for the bending part, cut the CG iterations of the 40k
+frame from 166 to 121 but the denser Galerkin levels raise the CPU per Newton iteration from
+0.88 to 1.32 s. A factorisation of an earlier Newton matrix as the CG preconditioner (what
+modified Newton reuses) fails: the frame's warm-start Hessian preconditioning the one at its
+minimiser leaves a true residual of 4e-2 after 300 CG iterations at 160k (the same matrix: 1
+iteration); the soft band moves within the frame. The refactorisation itself costs 8.1 s at
+160k (MUMPS LDL^T of the augmented system, BLR 1e-10; BLR 1e-4 saves 12 % at 40k).
 
 Inexact Newton: with ``forcing = "eisenstat_walker"`` the CG tolerance of Newton iteration k is
 Eisenstat & Walker's choice 2 (SIAM J. Sci. Comput. 17, 1996, eq. 2.6 with the safeguard of

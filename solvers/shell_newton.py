@@ -18,7 +18,9 @@ with Newton's method warm-started from the previous frame). Iteration k:
    starts at ``tau_prev / shift_decay`` without the unshifted attempt; nearer, ``tau = 0`` is
    tried first. Measured on the 7 %-compressed 20x20 wrinkling plate with the exact Hessian
    (tests/test_shift_schedule.py): 136 factorisations (56 failed) in 80 iterations, against
-   188 (109 failed) in 79 with session 1's "0 first, then from tau_prev / 10";
+   188 (109 failed) in 79 with session 1's "0 first, then from tau_prev / 10", and 45 (11)
+   in 34 with growth 5 and decay 2, the factors the quality presets select (they halve the
+   shell Newton time of the wrinkle scenes, :class:`solvers.linear.ShiftOptions`);
    with ``linear_method = "multigrid"`` the Newton system is solved by CG preconditioned by
    geometric multigrid on the subdivision hierarchy (:mod:`solvers.multigrid`), and with
    ``modified.enabled`` one factorisation serves several iterations and frames;
@@ -49,6 +51,7 @@ import scipy.sparse as sp
 
 from models.errors import InputError, SolverError
 from models.shell.assembly import HESSIAN_MODES
+from models.shell.hinge_angle import hinge_angles
 from models.shell.rest import face_quality
 from solvers.linear import (
     AugmentedPenaltySolver,
@@ -154,7 +157,18 @@ class ShellNewtonOptions:
         shift_decay: While ``||g|| > switch_rtol g_ref``, an iteration after one that needed
             ``tau_prev`` starts at ``tau_prev / shift_decay`` (> 1) without an unshifted
             attempt (:func:`solvers.linear.shift_candidates`); nearer the minimum every
-            iteration tries ``tau = 0`` first, keeping the quadratic tail.
+            iteration tries ``tau = 0`` first, keeping the quadratic tail. The presets select
+            2 with ``ShiftOptions.growth = 5`` (measured there): the shift then follows the
+            softest negative curvature down slowly instead of retrying a 10x smaller,
+            indefinite one every iteration (scenes/default.toml, frame 1, 10 / 10: 88
+            iterations at the same shift, each paying a failed factorisation). The price on
+            easy frames: more attempts to climb from ``tau_0`` and a slower return to 0
+            (scenes/ball_sofa_coarse.toml: 87 -> 104 factorisations, 45 -> 52 iterations,
+            14.7 -> 18.1 s shell Newton time over 10 frames). Tried and not adopted (quiet
+            machine): a decay that accelerates while its first attempts keep succeeding
+            (``tau_prev / 2^(1 + m)`` after m such iterations, as Nielsen's
+            Levenberg-Marquardt update doubles its factor): ball_sofa_coarse 18.9 -> 18.2 s
+            (10 / 10: 16.2 s), but scenes/default.toml 14.5 -> 18.2 s.
         linear_method: "direct" (sparse factorisation, ``linear``) or "multigrid" (CG with
             geometric multigrid on the subdivision hierarchy, ``multigrid``; needs the
             ``hierarchy`` argument of :class:`ShellNewtonSolver` and a PSD Hessian mode).
@@ -457,15 +471,43 @@ def _grad_norm(ev: EnergyEval) -> float:
     return float(np.linalg.norm(ev.grad))
 
 
-def worst_stencil(energy: object, grad: np.ndarray) -> str:
+FOLD_MARGIN: float = 1e-3
+"""A hinge whose bend angle is within this of +-pi [rad] counts as folded flat."""
+
+
+def worst_stencil(energy: object, grad: np.ndarray, x: np.ndarray | None = None) -> str:
     """Name the vertex of largest ``|g_i|`` and its incident face of lowest rest quality.
 
     The face (quality ``4 sqrt(3) A / sum |e|^2``, :func:`models.shell.rest.face_quality`) is
     named when ``energy`` has ``topology.faces`` and ``rest.positions`` (``ShellEnergy``).
+    With the positions ``x``, a hinge folded flat there is named too (:func:`folded_hinge`).
     """
     per_vertex = np.linalg.norm(grad.reshape(-1, 3), axis=1)
     v = int(np.argmax(per_vertex))
-    return f"vertex {v} (|g_i| = {per_vertex[v]:.3e})" + _worst_face(energy, v)
+    fold = "" if x is None else folded_hinge(energy, x)
+    return f"vertex {v} (|g_i| = {per_vertex[v]:.3e})" + _worst_face(energy, v) + fold
+
+
+def folded_hinge(energy: object, x: np.ndarray) -> str:
+    """``"; hinge h [i, j, k, l] folded flat (...)"`` for the hinge nearest to ``|theta| = pi``.
+
+    The bend angle lives in ``(-pi, pi]`` (:mod:`models.shell.hinge_angle`): at ``+-pi`` the
+    two faces lie back to back and ``(theta - theta0)^2`` jumps, so no line search crosses
+    it. Measured on the two-way bar with 2-3 coupling iterations (an unconverged body): the
+    shell Newton stalled at ``||g|| = 3.75`` with W jumping by 7.5e-3 at one hinge for any
+    step. Empty when no hinge is within :data:`FOLD_MARGIN` of +-pi or ``energy`` has no
+    ``topology.hinges``.
+    """
+    hinges = getattr(getattr(energy, "topology", None), "hinges", None)
+    if hinges is None or len(hinges) == 0:
+        return ""
+    gap = np.pi - np.abs(hinge_angles(np.asarray(x).reshape(-1, 3), np.asarray(hinges)))
+    h = int(np.argmin(gap))
+    if gap[h] > FOLD_MARGIN:
+        return ""
+    return (f"; hinge {h} {np.asarray(hinges)[h].tolist()} is folded flat (bend angle "
+            f"{np.pi - gap[h]:.6f} rad, pi - {gap[h]:.1e}), where the bending energy is "
+            f"discontinuous: the target drives the faces back to back")
 
 
 def _worst_face(energy: object, vertex: int) -> str:
@@ -600,7 +642,7 @@ class ShellNewtonSolver:
         raise ShellSolveError(
             f"shell Newton: no progress in {self.options.stagnation_iterations} iterations "
             f"(W changes within round-off, ||g|| = {report.grad_norm:.3e} > {tol:.3e}); worst "
-            f"stencil: {worst_stencil(self.energy, ev.grad)}; {report.summary()}",
+            f"stencil: {worst_stencil(self.energy, ev.grad, x)}; {report.summary()}",
             x.reshape(-1, 3), report)
 
     def _mode(self, grad_norm: float, switch: float) -> str:

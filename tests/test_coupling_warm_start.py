@@ -128,7 +128,10 @@ def default_runs(tmp_path_factory) -> dict[str, Path]:
     """scenes/default.toml on the coarse settings, one-way and two-way implicit."""
     outs = {}
     default = REPO / "scenes" / "default.toml"
-    capped = ("--set", "shell.coupling.max_iterations=3")
+    # a cap of 4 (change ~1e-1): with 2 (and, since the x5 / 2 shift schedule, 3) the
+    # unconverged body hands the shell a target on which a hinge folds flat (dihedral angle
+    # pi, where the bending energy jumps) and the shell solve stops with a named error
+    capped = ("--set", "shell.coupling.max_iterations=4")
     for mode, scene, extra in (("one_way", default, ()), ("two_way", TWO_WAY_SCENE, ()),
                                ("capped", TWO_WAY_SCENE, capped)):
         out = tmp_path_factory.mktemp(mode) / "out"
@@ -208,7 +211,7 @@ def test_unconverged_coupling_is_flagged(default_runs):
             assert f"coupling={d['coupling_iterations']}" in line
             assert ("NOT converged" in line) is not converged
         if not converged:
-            assert [r["details"]["coupling_iterations"] for r in recs] == [3, 3]
+            assert [r["details"]["coupling_iterations"] for r in recs] == [4, 4]
     assert "coupling" not in (default_runs["one_way"] / "progress.txt").read_text()
 
 
@@ -226,8 +229,9 @@ def test_two_way_scene_is_the_default_scene_coupled():
 @pytest.mark.mpi
 def test_two_way_scene_on_two_ranks_matches_serial(default_runs, mpiexec, tmp_path):
     """The coarse two-way run on 2 ranks: the same coupling iterations and body energies as
-    the serial run to the coupling tolerance (measured: 36 / 60 iterations on both, energies
-    equal to 2.0e-13 and 2.9e-9 relative, frames 1 / 2)."""
+    the serial run to the coupling tolerance (measured before the presets' x5 / 2 shift
+    schedule: 36 / 60 iterations on both, energies equal to 2.0e-13 and 2.9e-9 relative,
+    frames 1 / 2; serial with it: 38 / 61)."""
     out = tmp_path / "out"
     proc = mpiexec(["-m", "wrinkles", "run", str(TWO_WAY_SCENE), "--out", str(out), *COARSE],
                    n=2, timeout=300)

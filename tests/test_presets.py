@@ -39,7 +39,8 @@ def explicit_default() -> str:
         if keys is not None:
             text = text.replace(f"{table}\n", f"{table}\n{keys}\n", 1)
     return text.replace("[shell.coupling]", "[shell.newton]\nrtol = 1e-6\nmax_iterations = 300"
-                        "\n\n[shell.coupling]", 1)
+                        "\nshift_decay = 2.0\n\n[shell.newton.shift]\ngrowth = 5.0\n"
+                        "max_shifts = 20\n\n[shell.coupling]", 1)
 
 
 def scene_with(tmp_path: Path, header: str, body: str | None = None) -> Path:

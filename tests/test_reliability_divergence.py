@@ -108,3 +108,24 @@ def worst_z(body) -> float:
     corners = geo.x[geo.dofmaps[0]]  # (cells, 4, 3)
     bary = np.column_stack([1 - points.sum(axis=1), points])
     return float(np.einsum("qk,ckd->cqd", bary, corners)[..., 2].max())
+
+
+def test_stagnation_names_a_hinge_folded_flat() -> None:
+    """Two triangles folded back to back (bend angle pi, where the hinge energy jumps) are
+    named by the stagnation diagnostic; a flat hinge and a 90-degree fold are not."""
+    from types import SimpleNamespace
+
+    from models.shell.topology import ShellTopology
+    from solvers.shell_newton import folded_hinge, worst_stencil
+
+    faces = np.array([[0, 1, 2], [1, 0, 3]])
+    energy = SimpleNamespace(topology=ShellTopology.from_faces(faces, 4))
+    flat = np.array([[0.0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -1, 0]])
+    bent = flat.copy()
+    bent[3] = [0.5, 0.0, 1.0]
+    folded = flat.copy()
+    folded[3] = [0.5, 1.0, 0.0]  # on top of vertex 2: the faces lie back to back
+    assert folded_hinge(energy, flat) == "" and folded_hinge(energy, bent) == ""
+    message = worst_stencil(energy, np.ones(12), folded)
+    print(message)
+    assert "hinge 0 [0, 1, 2, 3] is folded flat" in message and "3.141593" in message

@@ -24,15 +24,16 @@ with a stiff skin, body h = 2 cm, 4 frames, one-way coupling; :data:`MEASURED_RU
 measured time per frame (process CPU time, the fair figure on the shared machine, and the
 contended wall time) and the errors against the reference run (shell position RMS at the
 final frame relative to the reference's RMS displacement, bending energy ``k_B W_B``,
-wrinkle wavelength) are given with each preset in :data:`PRESET_NOTES`. Two fronts: on the
-position error the 2-level exact solve (``balanced``) is the most accurate 2-level setting
-(only the 3-level Gauss-Newton row is closer, at 6.4x its CPU time), while on the bending
-energy error the error falls with every subdivision level (0.96 / 0.57 / 0.18 / 0.0014 at
-0 / 1 / 2 / 3 levels, exact Hessian). The 3-level P1 shell lands on a
-phase-shifted wrinkle branch (position RMS 0.169, but wavelength within 0.6 % and bending
-energy within 0.14 % of the reference), so the position error alone does not rank the
-levels. The Newton tolerance does not matter with the exact Hessian (rtol 1e-3 to 1e-8:
-the same shell, within 1 % of the time). ``scenes/default.toml`` sets ``quality =
+wrinkle wavelength) are given with each preset in :data:`PRESET_NOTES`. Two fronts (position
+RMS, bending energy); with the x5 / 2 shift schedule (:data:`SHIFT_SCHEDULE`, session 5) the
+3-level P1 shell lands on the reference's branch (position RMS 0.030, bending energy 3.6 %,
+wavelength 0.4 %), so the levels rank the same on both. The 2-level exact solve (``balanced``)
+is on neither front but no 2-level setting beats it on all three errors at less CPU time: the
+Gauss-Newton Hessian at rtol 1e-3 is cheaper (0.68x) with a lower bending energy error but
+worse positions and wavelength, a coarser body (h = 3 cm, a scene choice, not a preset key) is
+cheaper with better positions but two to three times the bending energy and wavelength errors.
+The Newton tolerance does not matter with the exact Hessian (rtol 1e-3 to 1e-8: RMS error
+0.148 throughout, within 10 % of the time). ``scenes/default.toml`` sets ``quality =
 "balanced"`` and writes none of the preset's keys.
 """
 
@@ -46,18 +47,29 @@ from models.errors import InputError
 QUALITY_KEY = "quality"
 """Top-level scene key selecting a preset."""
 
+SHIFT_SCHEDULE: dict[str, Any] = {
+    "shell.newton.shift.growth": 5.0,
+    "shell.newton.shift_decay": 2.0,
+    "shell.newton.shift.max_shifts": 20,
+}
+"""The shifted-Hessian factors of every preset: growth 5, decay 2 (the solver's defaults are
+the textbook 10 / 10); measured by benchmarks/shift_schedule.py and by the sweep's row
+'shift=10/10' (see :class:`solvers.linear.ShiftOptions`)."""
+
 PRESETS: dict[str, dict[str, Any]] = {
     "preview": {
         "shell.subdivision.levels": 1,
         "shell.energy.hessian_mode": "exact",
         "shell.newton.rtol": 1.0e-6,
         "shell.newton.max_iterations": 300,
+        **SHIFT_SCHEDULE,
     },
     "balanced": {
         "shell.subdivision.levels": 2,
         "shell.energy.hessian_mode": "exact",
         "shell.newton.rtol": 1.0e-6,
         "shell.newton.max_iterations": 300,
+        **SHIFT_SCHEDULE,
     },
     "final": {
         "shell.subdivision.levels": 3,
@@ -65,20 +77,20 @@ PRESETS: dict[str, dict[str, Any]] = {
         "shell.newton.rtol": 1.0e-8,
         "shell.newton.max_iterations": 500,
         "body.degree": 2,
+        **SHIFT_SCHEDULE,
     },
 }
 """Quality name -> dotted scene keys and values (the overlay)."""
 
-MEASURED_RUN = ("python benchmarks/speed_accuracy.py --resume --budget 50 "
-                "(benchmarks/results/speed_accuracy.json, 2026-11-22T13:25-14:06Z, and the "
-                "row L3+gauss_newton+rtol=0.001 14:23-14:29Z by --resume --only combo; serial, "
-                "machine shared with other jobs: 1-minute load 3.7-7.7 on 2 cores, wall "
-                "times about 3x the CPU times)")
+MEASURED_RUN = ("python benchmarks/speed_accuracy.py --resume --budget 60 "
+                "(benchmarks/results/speed_accuracy.json, 2026-11-25T16:28-17:35Z, serial, "
+                "the machine running one other benchmark: 1-minute load 1.8-2.1 on 2 cores, "
+                "wall times 0-10 % above the CPU times)")
 """The run the numbers of :data:`PRESET_NOTES` come from: ``scenes/default.toml`` as it is
 (h = 2 cm, so 165 / 654 / 2610 / 10434 shell vertices at 0 / 1 / 2 / 3 levels), 4 frames;
-reference: 3 levels, P2 body, exact Hessian, rtol 1e-8, 10434 vertices, 42.2 s/frame CPU
-(125 s/frame wall), wrinkle wavelength 2.18 cm (:func:`wrinkles.measure.shell_wavelength`).
-The earlier coarse-body sweep (h = 5 cm, session 2) chose the same presets."""
+reference: 3 levels, P2 body, exact Hessian, rtol 1e-8, 10434 vertices, 25.6 s/frame CPU,
+wrinkle wavelength 2.20 cm (:func:`wrinkles.measure.shell_wavelength`). The sweeps of
+sessions 2-4 (ten-fold shift schedule) chose the same presets."""
 
 PRESET_ROWS: dict[str, str] = {"preview": "levels=1", "balanced": "base", "final": "reference"}
 """Quality name -> the row of :data:`MEASURED_RUN`'s JSON that measured the preset ("base" is
@@ -86,25 +98,24 @@ the scene's own settings, i.e. ``balanced``; "reference" the reference run). The
 copies this map into its JSON (``presets``) and ``make paper`` tabulates those rows."""
 
 PRESET_NOTES: dict[str, str] = {
-    "preview": "row 'levels=1': 0.41 s/frame CPU (1.26 s/frame wall, contended), 654 "
-               "vertices; shell position RMS error 0.198 of the reference RMS displacement "
-               "(max 8.3 mm), bending energy error 57 %, wavelength 2.01 cm (7.9 % error); on "
-               "both Pareto fronts",
-    "balanced": "row 'base': 5.74 s/frame CPU (17.5 s/frame wall, contended), 2610 "
-                "vertices; RMS error 0.135 (max 5.2 mm), the lowest at 2 levels; bending "
-                "energy error 18 %, wavelength 2.05 cm (6.0 % error). A measured cheaper "
-                "point on both fronts: the Gauss-Newton Hessian with rtol 1e-3 ('L2+gauss_"
-                "newton+rtol=0.001'), 1.90 s/frame CPU (3.0x less), RMS error 0.146, bending "
-                "energy error 15.5 %, wavelength error 9.0 %: worse positions and wavelength, "
-                "so not the preset (set it with --set for speed). Gauss-Newton at rtol 1e-6 "
-                "did not converge in 300 iterations (826 over 4 frames)",
-    "final": "row 'reference' (the reference settings): 42.2 s/frame CPU (125 s/frame "
-             "wall, contended), 10434 vertices; error 0 by construction (not compared with a "
-             "finer run). The 3-level P1 shell at rtol 1e-6 ('levels=3') costs 37.4 s/frame "
-             "CPU with bending energy error 0.14 % and wavelength error 0.6 %; with the "
-             "Gauss-Newton Hessian at rtol 1e-3 ('L3+gauss_newton+rtol=0.001') 36.6 s/frame "
-             "CPU, RMS error 0.128 (the lowest of the sweep), bending energy error 3.5 %: "
-             "neither is much cheaper than the reference",
+    "preview": "row 'levels=1': 0.32 s/frame CPU, 654 vertices; shell position RMS error "
+               "0.187 of the reference RMS displacement (max 8.7 mm), bending energy error "
+               "57 %, wavelength 2.01 cm (8.8 % error); on both Pareto fronts",
+    "balanced": "row 'base': 3.35 s/frame CPU, 2610 vertices; RMS error 0.148 (max 5.6 mm), "
+                "bending energy error 16 %, wavelength 2.12 cm (3.7 % error). Measured "
+                "neighbours: the Gauss-Newton Hessian with rtol 1e-3 ('L2+gauss_newton+"
+                "rtol=0.001') 2.27 s/frame CPU (0.68x), RMS error 0.162, bending energy error "
+                "13 %, wavelength error 8.0 % (set it with --set for speed); the solver's "
+                "default ten-fold shift schedule ('shift=10/10') 6.92 s/frame CPU (2.1x), RMS "
+                "error 0.168, wavelength error 6.8 %; narrower clusters ('sigma=0.0035', a "
+                "scene key) 3.52 s/frame, RMS error 0.145, bending energy error 9.7 %, "
+                "wavelength error 1.9 %",
+    "final": "row 'reference' (the reference settings): 25.6 s/frame CPU, 10434 vertices; "
+             "error 0 by construction (not compared with a finer run). The 3-level P1 shell "
+             "at rtol 1e-6 ('levels=3') costs 25.9 s/frame CPU with RMS error 0.030, "
+             "bending energy error 3.6 % and wavelength error 0.4 %; with the Gauss-Newton "
+             "Hessian at rtol 1e-3 ('L3+gauss_newton+rtol=0.001') 45.6 s/frame CPU (it "
+             "needs 427 iterations), RMS error 0.151: neither is cheaper than the reference",
 }
 """Quality name -> measured time per frame and error of the preset (:data:`MEASURED_RUN`)."""
 

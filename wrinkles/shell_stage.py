@@ -396,6 +396,8 @@ def shell_record(shell: Shell, report: ShellSolveReport) -> StageRecord:
     ev = shell.energy.evaluate(shell.x, order=0)
     total, amplitude = deviation(shell)
     return {"shell_iterations": report.iterations, "shell_converged": report.converged,
+            "shell_factorizations": report.factorizations,
+            "shell_shifted_iterations": report.shifted_iterations,
             "shell_energy": ev.value, "shell_terms": dict(ev.terms),
             "shell_grad_norm": report.grad_norm, "shell_tolerance": report.tolerance,
             "shell_start_repaired": shell.start_repaired, "wrinkle_amplitude": amplitude,

@@ -99,7 +99,11 @@ class LinearSolverOptions:
             vertices vs SCOTCH 5.0e9, PORD 5.9e9, AMF 7.0e9, AMD / QAMD 9.0e9; 3.8e10 at 40k vs
             SCOTCH 4.2e10, PORD 4.8e10; the refactorisation times follow the flops.
             ICNTL(15) (blocked analysis), ICNTL(58) = 1 / 2 (symbolic method) and ICNTL(8) = 0
-            (no scaling) left the factor unchanged and gave no measurable gain.
+            (no scaling) left the factor unchanged and gave no measurable gain. Session 5,
+            the augmented LDL^T of scenes/default.toml's first frame (2610 vertices, 254
+            clusters; 8592 rows), median refactorisation: METIS 46.5 ms (1.82e6 factor
+            entries), SCOTCH 49.2, PORD 52.0, AMD / QAMD 86, AMF 141, LU (METIS) 83; BLR
+            off the same (fronts too small); two OpenMP threads 48.4 ms.
         mumps_icntl: Extra MUMPS ``(index, value)`` integer controls, applied last.
         mumps_blr: MUMPS block low-rank factorisation (ICNTL(35) = 1; False = full rank). On
             by default: the fastest option measured (session 2, icosphere shell Hessian,
@@ -201,7 +205,10 @@ class ShiftOptions:
             would pay for it (14.7 -> 18.1 s, 45 -> 52 iterations), so that scene keeps
             10 / 10. A path of other step lengths may settle in another wrinkle branch: on
             the plate of tests/test_shift_schedule.py 5 / 2 reaches W = 4.72421 in 34
-            iterations where 10 / 10 reaches 4.75496 in 80.
+            iterations where 10 / 10 reaches 4.75496 in 80. Near a minimum the gain goes: the
+            warm-started 160k frame of benchmarks/iterative.py (exact Hessian,
+            multigrid-fast-ew) takes 8 Newton iterations and 40.7 s CPU with 5 / 2 against 6
+            and 33.5 s.
         max_shifts: Number of shifted attempts before giving up (>= 1): the largest shift is
             ``initial * growth^(max_shifts - 1)`` x the mean diagonal (1e7 with the defaults;
             20 attempts at growth 5 reach 1.9e7).

@@ -168,7 +168,11 @@ class ShellNewtonOptions:
             machine): a decay that accelerates while its first attempts keep succeeding
             (``tau_prev / 2^(1 + m)`` after m such iterations, as Nielsen's
             Levenberg-Marquardt update doubles its factor): ball_sofa_coarse 18.9 -> 18.2 s
-            (10 / 10: 16.2 s), but scenes/default.toml 14.5 -> 18.2 s.
+            (10 / 10: 16.2 s), but scenes/default.toml 14.5 -> 18.2 s. Nor starting a frame
+            from the shift its predecessor's first iteration accepted (every frame of the
+            default scene climbs 9 factorisations to ~3.3e3): bent_bar 14.4 -> 12.4 s,
+            twisted_cylinder 18.3 -> 15.4 s, but default 13.0 -> 15.5 s (169 -> 210
+            iterations, another path).
         linear_method: "direct" (sparse factorisation, ``linear``) or "multigrid" (CG with
             geometric multigrid on the subdivision hierarchy, ``multigrid``; needs the
             ``hierarchy`` argument of :class:`ShellNewtonSolver` and a PSD Hessian mode).

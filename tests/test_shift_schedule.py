@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 import shellcases
@@ -101,3 +107,24 @@ def test_candidates_reuse_the_last_shift() -> None:
         [0.0, 1e-3, 1e-2, 1e-1])
     # below tau_0 the schedule starts from tau_0 with the unshifted attempt first
     assert shift_candidates(2.0, shift, 1e-7) == pytest.approx([0.0, 2e-6, 2e-5, 2e-4])
+
+
+def test_schedule_benchmark_quick_mode(tmp_path) -> None:
+    """``benchmarks/shift_schedule.py --quick`` (scenes/default.toml, 1 frame, 1 level, the
+    ten-fold and the presets' schedule) writes well-formed rows, and the presets' schedule
+    needs fewer factorisations (measured: 105 against 57 in 54 against 38 iterations)."""
+    repo = Path(__file__).resolve().parents[1]
+    out = tmp_path / "shift_schedule.json"
+    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    proc = subprocess.run([sys.executable, "benchmarks/shift_schedule.py", "--quick", "--out",
+                           str(out)], cwd=repo, env=env, capture_output=True, text=True,
+                          timeout=600)
+    print(proc.stdout)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = {r["schedule"]: r for r in json.loads(out.read_text())["rows"]}
+    assert set(rows) == {"10/10", "5/2"}
+    for r in rows.values():
+        assert "error" not in r and r["converged"] == [True]
+        assert len(r["iterations"]) == len(r["factorizations"]) == len(r["shell_seconds"]) == 1
+        assert r["factorizations"][0] >= r["iterations"][0] > 0 and r["cpu"] > 0
+    assert rows["5/2"]["factorizations"][0] < 0.75 * rows["10/10"]["factorizations"][0]

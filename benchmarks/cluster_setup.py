@@ -41,6 +41,7 @@ import os
 import platform
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -48,6 +49,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
+import scipy.sparse as sp  # noqa: E402
 
 from benchmarks.scaling import Timings, power_fit, stopwatch  # noqa: E402
 from benchmarks.shell_solve import proc_status_mib  # noqa: E402
@@ -73,9 +75,23 @@ SHORT = {"edge_graph": "graph", "centres_fps": "fps", "gaussian_weights": "weigh
          "centres_bfs": "bfs"}
 
 
-def stages(cells: int, t: Timings, bfs: bool = True) -> dict:
-    """Run (and time into ``t``) every stage on the ``cells x cells`` plate; a summary."""
-    v, f = grid_plate(cells, cells)
+@dataclass
+class Built:
+    """What the timed stages of :func:`build_stages` produce."""
+
+    graph: sp.csr_matrix
+    centres: np.ndarray
+    spacing: float
+    h: sp.csr_matrix
+    partition: np.ndarray
+    min_singular_value: float
+
+
+def build_stages(v: np.ndarray, f: np.ndarray, t: Timings) -> Built:
+    """The stages of :func:`build_clusters` at ``n / 75`` centres, each timed into ``t``.
+
+    Shared with ``benchmarks/scaling.py --clusters-study``.
+    """
     with stopwatch(t, "edge_graph"):
         graph = edge_graph(v, f)
     with stopwatch(t, "centres_fps"):
@@ -86,6 +102,15 @@ def stages(cells: int, t: Timings, bfs: bool = True) -> dict:
         partition = nearest_centre_partition(graph, centres)
     with stopwatch(t, "min_singular_value"):
         smin = smallest_singular_value(h)
+    return Built(graph, centres, r, h, partition, smin)
+
+
+def stages(cells: int, t: Timings, bfs: bool = True) -> dict:
+    """Run (and time into ``t``) every stage on the ``cells x cells`` plate; a summary."""
+    v, f = grid_plate(cells, cells)
+    b = build_stages(v, f, t)
+    graph, centres, r, h, partition, smin = (b.graph, b.centres, b.spacing, b.h, b.partition,
+                                             b.min_singular_value)
     t["build_clusters"] = {k: sum(t[s][k] for s in BUILD_STAGES) for k in ("wall", "cpu")}
     out = {"n": len(v), "clusters": int(centres.size), "spacing": r, "nnz": int(h.nnz),
            "min_singular_value": smin, "partition_checksum": int(partition.sum()),

@@ -82,13 +82,6 @@ from benchmarks.iterative import (  # noqa: E402
 )
 from benchmarks.shell_solve import cluster_matrix, proc_status_mib  # noqa: E402
 from meshes.shells import grid_plate  # noqa: E402
-from models.embedding.clusters import (  # noqa: E402
-    edge_graph,
-    farthest_point_centres,
-    gaussian_weights,
-    nearest_centre_partition,
-    smallest_singular_value,
-)
 from models.shell.energy import ShellEnergy, ShellParams  # noqa: E402
 from models.shell.rest import RestState  # noqa: E402
 from models.shell.topology import ShellTopology  # noqa: E402
@@ -218,21 +211,14 @@ def cluster_study(levels: int, cells: int) -> dict:
     centres, Gaussian weights by truncated Dijkstra, nearest-centre partition, smallest singular
     value of H), against the benchmark's KD-tree weights :func:`cluster_matrix`.
     """
+    from benchmarks.cluster_setup import build_stages  # imports this module: not at the top
+
     hier = ShellHierarchy.build(*grid_plate(cells, cells), levels=levels)
     v, t = hier.vertices, Timings()
-    with stopwatch(t, "edge_graph"):
-        graph = edge_graph(v, hier.faces)
-    with stopwatch(t, "centres_fps"):
-        centres, r = farthest_point_centres(graph, 0, max(1, len(v) // CLUSTER_RATIO), None)
-    with stopwatch(t, "gaussian_weights"):
-        h = gaussian_weights(graph, centres, 2.0 * r / np.pi)
-    with stopwatch(t, "partition"):
-        nearest_centre_partition(graph, centres)
-    with stopwatch(t, "min_singular_value"):
-        smallest_singular_value(h)
+    built = build_stages(v, hier.faces, t)
     with stopwatch(t, "kdtree_cluster_matrix"):
         cluster_matrix(v, CLUSTER_RATIO)
-    return {"size": size_label(levels, cells), "n": len(v), "clusters": int(centres.size),
+    return {"size": size_label(levels, cells), "n": len(v), "clusters": int(built.centres.size),
             "method": "clusters", "setup": t, "peak_mib": proc_status_mib("VmHWM")}
 
 

@@ -6,10 +6,11 @@ with ``A + tau I`` (:func:`solvers.linear.shift_candidates`): shifts grow by
 ``shell.newton.shift.growth`` until the factorisation is positive definite and the line search
 accepts the step, and the next iteration starts from ``tau / shell.newton.shift_decay``. A
 shift larger than needed shortens the step in every soft direction; a start too small pays a
-failed factorisation. This benchmark runs whole scenes (``wrinkles run``, one process each,
-output and rendering as the scene has them except the render) with each ``growth/decay``
-pair and records per frame the shell Newton iterations, factorisations, shifted iterations,
-shell Newton wall time and the final shell energy, and the process CPU time of the run.
+failed factorisation. This benchmark runs whole scenes in this process
+(:func:`speed_accuracy.run_config`: serial, no output files, after an untimed JIT warm-up)
+with each ``growth/decay`` pair and records per frame the shell Newton iterations,
+factorisations, shifted iterations and shell Newton wall time, the final shell energy, and
+the process CPU time of all frames.
 
 The shell energies of two schedules may differ at a wrinkled frame: a path from the flat
 start falls into a wrinkle branch that depends on its step lengths (both are minima; the
@@ -31,11 +32,12 @@ import json
 import math
 import os
 import platform
-import resource
-import subprocess
 import sys
-import tempfile
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from speed_accuracy import run_config  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "shift_schedule.json"
@@ -50,49 +52,25 @@ that ``growth^(max_shifts - 1) >= CEILING``, the reach of 14 ten-fold shifts."""
 
 
 def schedule_overrides(schedule: str) -> list[str]:
-    """``--set`` arguments of a ``growth/decay`` pair (with the matching ``max_shifts``)."""
+    """Scene overrides of a ``growth/decay`` pair (with the matching ``max_shifts``)."""
     growth, decay = (float(v) for v in schedule.split("/"))
     shifts = math.ceil(math.log(CEILING) / math.log(growth)) + 1
-    return ["--set", f"shell.newton.shift.growth={growth!r}",
-            "--set", f"shell.newton.shift_decay={decay!r}",
-            "--set", f"shell.newton.shift.max_shifts={shifts}"]
-
-
-def child_cpu() -> float:
-    """Process CPU seconds (user + system) of the finished child processes so far."""
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
+    return [f"shell.newton.shift.growth={growth!r}", f"shell.newton.shift_decay={decay!r}",
+            f"shell.newton.shift.max_shifts={shifts}"]
 
 
 def run_scene(scene: str, schedule: str, extra: list[str]) -> dict:
-    """One ``wrinkles run`` of ``scenes/<scene>.toml`` with ``schedule``; its row."""
-    with tempfile.TemporaryDirectory() as out:
-        cmd = [sys.executable, "-m", "wrinkles", "run", str(REPO / "scenes" / f"{scene}.toml"),
-               "--out", out, "--set", "shell.render=false", *schedule_overrides(schedule),
-               *extra]
-        cpu0 = child_cpu()
-        done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, check=False)
-        cpu = child_cpu() - cpu0
-        if done.returncode != 0:
-            return {"scene": scene, "schedule": schedule, "error": done.stderr[-2000:],
-                    "cpu": cpu}
-        frames = json.loads((Path(out) / "summary.json").read_text())["frames"]
-    details = [f["details"] for f in frames]
-    return {"scene": scene, "schedule": schedule, "cpu": cpu,
-            "iterations": [d["shell_iterations"] for d in details],
-            "factorizations": [d["shell_factorizations"] for d in details],
-            "shifted": [d["shell_shifted_iterations"] for d in details],
-            "shell_seconds": [d["shell_time_total"] for d in details],
-            "converged": [d["shell_converged"] for d in details],
-            "final_energy": details[-1]["shell_energy"]}
+    """``scenes/<scene>.toml`` with ``schedule`` (:func:`speed_accuracy.run_config`: serial,
+    no output files); its row."""
+    run = run_config(REPO / "scenes" / f"{scene}.toml", [*schedule_overrides(schedule), *extra])
+    return {"scene": scene, "schedule": schedule, "cpu": sum(run["frame_cpu_times"]),
+            "iterations": run["shell_iterations"], "factorizations": run["shell_factorizations"],
+            "shifted": run["shell_shifted_iterations"], "shell_seconds": run["shell_seconds"],
+            "converged": run["shell_converged"], "final_energy": run["shell_final_energy"]}
 
 
 def print_row(r: dict) -> None:
     """One line of the table."""
-    if "error" in r:
-        print(f"{r['scene']:>17} {r['schedule']:>6}  failed: {r['error'].splitlines()[-1:]}",
-              flush=True)
-        return
     print(f"{r['scene']:>17} {r['schedule']:>6} {sum(r['iterations']):>5} "
           f"{sum(r['factorizations']):>6} {sum(r['shifted']):>7} {sum(r['shell_seconds']):8.1f} "
           f"{r['cpu']:8.1f} {r['final_energy']:13.6e}  {r['iterations']}", flush=True)
@@ -130,17 +108,18 @@ def _number_above_one(text: str) -> bool:
 def main(argv: list[str] | None = None) -> None:
     """Every (scene, schedule): run, print, write the JSON."""
     args = parse_args(argv)
-    extra = [a for o in args.overrides for a in ("--set", o)]
     meta = {"python": platform.python_version(), "cpus": os.cpu_count(),
             "overrides": args.overrides, "ceiling": CEILING,
             "units": "shell_seconds: shell Newton wall time per frame; cpu: process CPU "
-                     "seconds of the whole run (body, set-up and output included)"}
+                     "seconds of all frames (set-up excluded, no output files)"}
     print(f"{'scene':>17} {'sched':>6} {'its':>5} {'fact':>6} {'shifted':>7} {'shell s':>8} "
           f"{'cpu s':>8} {'final W':>13}  its per frame")
+    run_config(REPO / "scenes" / "default.toml", ["shell.subdivision.levels=0", "time.frames=1",
+                                                  *args.overrides])  # JIT warm-up, untimed
     rows: list[dict] = []
     for scene in args.scenes:
         for schedule in args.schedules:
-            rows.append(run_scene(scene, schedule, extra))
+            rows.append(run_scene(scene, schedule, args.overrides))
             print_row(rows[-1])
             meta["load_average"] = os.getloadavg()
             args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -373,6 +373,13 @@ def run_config(scene_path: Path, overrides: list[str]) -> dict[str, Any]:
             "body_iterations": [r.newton_iterations for r in run.records],
             "shell_iterations": [r.details.get("shell_iterations") for r in run.records],
             "shell_converged": [r.details.get("shell_converged") for r in run.records],
+            "shell_factorizations": [r.details.get("shell_factorizations")
+                                     for r in run.records],
+            "shell_shifted_iterations": [r.details.get("shell_shifted_iterations")
+                                         for r in run.records],
+            "shell_seconds": [r.details.get("shell_time_total") for r in run.records],
+            "shell_final_energy": run.records[-1].details.get("shell_energy")
+            if run.records else None,
             "coupling_iterations": [r.details.get("coupling_iterations") for r in run.records],
             "vertices": int(shell.rest.shape[0]), "bending_energy": float(terms.get("bending",
                                                                                     0.0)),

@@ -479,17 +479,17 @@ FOLD_MARGIN: float = 1e-3
 """A hinge whose bend angle is within this of +-pi [rad] counts as folded flat."""
 
 
-def worst_stencil(energy: object, grad: np.ndarray, x: np.ndarray | None = None) -> str:
+def worst_stencil(energy: object, grad: np.ndarray, x: np.ndarray) -> str:
     """Name the vertex of largest ``|g_i|`` and its incident face of lowest rest quality.
 
     The face (quality ``4 sqrt(3) A / sum |e|^2``, :func:`models.shell.rest.face_quality`) is
     named when ``energy`` has ``topology.faces`` and ``rest.positions`` (``ShellEnergy``).
-    With the positions ``x``, a hinge folded flat there is named too (:func:`folded_hinge`).
+    A hinge folded flat at the positions ``x`` is named too (:func:`folded_hinge`).
     """
     per_vertex = np.linalg.norm(grad.reshape(-1, 3), axis=1)
     v = int(np.argmax(per_vertex))
-    fold = "" if x is None else folded_hinge(energy, x)
-    return f"vertex {v} (|g_i| = {per_vertex[v]:.3e})" + _worst_face(energy, v) + fold
+    return (f"vertex {v} (|g_i| = {per_vertex[v]:.3e})" + _worst_face(energy, v)
+            + folded_hinge(energy, x))
 
 
 def folded_hinge(energy: object, x: np.ndarray) -> str:
@@ -505,11 +505,12 @@ def folded_hinge(energy: object, x: np.ndarray) -> str:
     hinges = getattr(getattr(energy, "topology", None), "hinges", None)
     if hinges is None or len(hinges) == 0:
         return ""
-    gap = np.pi - np.abs(hinge_angles(np.asarray(x).reshape(-1, 3), np.asarray(hinges)))
+    hinges = np.asarray(hinges)
+    gap = np.pi - np.abs(hinge_angles(np.asarray(x).reshape(-1, 3), hinges))
     h = int(np.argmin(gap))
     if gap[h] > FOLD_MARGIN:
         return ""
-    return (f"; hinge {h} {np.asarray(hinges)[h].tolist()} is folded flat (bend angle "
+    return (f"; hinge {h} {hinges[h].tolist()} is folded flat (bend angle "
             f"{np.pi - gap[h]:.6f} rad, pi - {gap[h]:.1e}), where the bending energy is "
             f"discontinuous: the target drives the faces back to back")
 

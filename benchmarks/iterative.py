@@ -18,7 +18,11 @@ same start with the same Hessian mode (``--hessian``, default the PSD "gauss_new
 * ``multigrid-fast-ew``: the same with the Eisenstat-Walker forcing term;
 * ``multigrid-fast-tight``: :data:`FAST` with CG to the true residual 1e-8 every iteration
   (the direct solve's Newton history to the CG tolerance);
-* ``multigrid-fast-w``, ``multigrid-fast-ew-w``: the same two with W-cycles.
+* ``multigrid-fast-w``, ``multigrid-fast-ew-w``: the same two with W-cycles;
+* ``multigrid-phase``, ``multigrid-phase-ew``, ``multigrid-phase-tight``: ``multigrid-fast``,
+  ``-fast-ew`` and ``-fast-tight`` with the wrinkle-phase coarse space
+  (:mod:`solvers.phase_space`, ``MultigridOptions.phase_space``); ``multigrid-phase-ew-d1``
+  the EW one with one Chebyshev step per level.
 
 Each runs ``--iterations`` Newton iterations (or stops at ``--rtol``) and reports the time per
 Newton iteration (evaluation + linear solve + line search), the split, CG iterations, the
@@ -109,6 +113,17 @@ METHODS: dict[str, dict] = {
     "multigrid-fast-w": {"linear_method": "multigrid", "multigrid": replace(FAST, cycle="w")},
     "multigrid-fast-ew-w": {"linear_method": "multigrid",
                             "multigrid": replace(FAST, forcing="eisenstat_walker", cycle="w")},
+    "multigrid-phase": {"linear_method": "multigrid",
+                        "multigrid": replace(FAST, phase_space=True)},
+    "multigrid-phase-ew": {"linear_method": "multigrid",
+                           "multigrid": replace(FAST, phase_space=True,
+                                                forcing="eisenstat_walker")},
+    "multigrid-phase-ew-d1": {"linear_method": "multigrid",
+                              "multigrid": replace(FAST, phase_space=True, smoother_degree=1,
+                                                   forcing="eisenstat_walker")},
+    "multigrid-phase-tight": {"linear_method": "multigrid",
+                              "multigrid": replace(FAST, phase_space=True, rtol=1e-8,
+                                                   target_fraction=0.0)},
 }
 
 
@@ -194,7 +209,7 @@ def run_method(scene: Scene, method: str, args: argparse.Namespace) -> dict:
 CPU_PARTS: dict[str, tuple[str, ...]] = {
     "newton": ("_evaluate", "_line_search"),
     "krylov": ("_galerkin_products", "_refresh_products", "_update_coarse", "_create_ksp",
-               "_refresh_smoothers", "_cg", "true_residual", "_fallback"),
+               "_refresh_smoothers", "_update_phase", "_cg", "true_residual", "_fallback"),
 }
 """Methods whose process CPU time ``--breakdown`` accumulates: the shell Newton's evaluations
 and line search, the multigrid system's set-up parts, CG, true residual, direct fallback."""

@@ -88,6 +88,11 @@ modified Newton reuses) fails: the frame's warm-start Hessian preconditioning th
 minimiser leaves a true residual of 4e-2 after 300 CG iterations at 160k (the same matrix: 1
 iteration); the soft band moves within the frame. The refactorisation itself costs 8.1 s at
 160k (MUMPS LDL^T of the augmented system, BLR 1e-10; BLR 1e-4 saves 12 % at 40k).
+Session 6: the soft band is the *phase* of the wrinkles (a smooth envelope times the carrier's
+derivative), which a coarse space of hats times the wrinkle field's derivatives captures
+(:mod:`solvers.phase_space`, ``MultigridOptions.phase_space``): on the same frame 86 instead of
+241 CG iterations and 4.1 instead of 5.4 s CPU per Newton iteration, the same 6 iterations;
+the 2 s is still not reached (set-up 1.6 s and evaluation 0.5 s per iteration alone).
 
 Inexact Newton: with ``forcing = "eisenstat_walker"`` the CG tolerance of Newton iteration k is
 Eisenstat & Walker's choice 2 (SIAM J. Sci. Comput. 17, 1996, eq. 2.6 with the safeguard of
@@ -109,6 +114,7 @@ from models.backend import PETSc
 from models.embedding.subdivision import Subdivision, SubdivisionOptions, subdivide
 from models.errors import InputError
 from solvers.linear import FactorReport
+from solvers.phase_space import BalancedPreconditioner, PhaseSpace, hat_matrix, scipy_csr
 
 FORCING: tuple[str, ...] = ("fixed", "eisenstat_walker")
 CYCLES: tuple[str, ...] = ("v", "w")
@@ -163,6 +169,17 @@ class MultigridOptions:
             ``min(ew_max, target_fraction tol / ||g_k||)``: the last Newton step is solved
             only as accurately as reaching ``target_fraction tol`` needs (dimensionless,
             in [0, 1); 0 = off).
+        phase_space: Add the wrinkle-phase coarse space of :mod:`solvers.phase_space` (coarse
+            hats times the wrinkle displacement and its tangential derivatives) as a
+            deflation (A-DEF2) correction around the V-cycle: one V-cycle, one product with
+            the Newton matrix and one small solve per CG iteration. It targets the soft band
+            of a wrinkled minimum (160k warm frame: 241 -> 86 CG iterations, 5.4 -> 4.1 s
+            CPU per Newton iteration, the same 6 Newton iterations); used only while its
+            Galerkin matrix is positive definite (else the V-cycle alone). On the
+            2610-vertex default scene (3 frames, CG to 1e-4) it costs more than it saves:
+            12.0 against 10.8 s wall, 80 against 86 shell iterations in frame 1.
+        phase_level: Hierarchy level whose vertex hats modulate the test fields (0 = the
+            coarse mesh; ``3 n_level`` columns).
 
     """
 
@@ -180,8 +197,13 @@ class MultigridOptions:
     eigen_estimate: str = "setup"
     level_format: str = "aij"
     target_fraction: float = 0.0
+    phase_space: bool = False
+    phase_level: int = 0
 
     def __post_init__(self) -> None:
+        if self.phase_level < 0:
+            raise InputError(f"MultigridOptions.phase_level: must be >= 0, got "
+                             f"{self.phase_level!r}")
         if not 0 <= self.target_fraction < 1:
             raise InputError(f"MultigridOptions.target_fraction: must be in [0, 1), got "
                              f"{self.target_fraction!r}")
@@ -431,12 +453,6 @@ def _aij(csr: sp.csr_matrix, block: int = 1) -> Any:
              c.data.astype(PETSc.ScalarType)), comm=PETSc.COMM_SELF)
 
 
-def _scipy_of(mat: Any) -> sp.csr_matrix:
-    """Copy a PETSc AIJ matrix into scipy CSR."""
-    indptr, indices, data = mat.getValuesCSR()
-    return sp.csr_matrix((data, indices, indptr), shape=mat.getSize())
-
-
 class FineMatrix:
     """The fine Newton matrix ``A + tau I`` as a PETSc AIJ wrapping a fixed CSR pattern.
 
@@ -522,11 +538,13 @@ class MultigridLinearSystem:
             last one ending at the shell's dofs (:meth:`ShellHierarchy.prolongations`).
         options: Krylov / multigrid options.
         fallback: Direct solver used when CG fails (None: no fallback).
+        geometry: Rest vertices and faces of the shell (``options.phase_space`` needs them).
 
     """
 
     def __init__(self, prolongations: tuple[sp.csr_matrix, ...], options: MultigridOptions,
-                 fallback: NewtonSystem | None = None) -> None:
+                 fallback: NewtonSystem | None = None,
+                 geometry: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         if not prolongations:
             raise InputError("MultigridLinearSystem: the hierarchy needs >= 1 subdivision "
                              "level")
@@ -555,6 +573,29 @@ class MultigridLinearSystem:
         self._sbaij: list[_SymmetricCopy] = []
         self._estimate_due = True
         self._bounds_stale = False
+        self.phase = self._phase_space(geometry)
+        self._state: tuple[np.ndarray, np.ndarray] | None = None
+        self._balanced: Any = None
+        self._phase_ready = False
+
+    def _phase_space(self, geometry: tuple[np.ndarray, np.ndarray] | None) -> PhaseSpace | None:
+        """Build the :class:`~solvers.phase_space.PhaseSpace` when ``options.phase_space``."""
+        if not self.options.phase_space:
+            return None
+        if geometry is None:
+            raise InputError("MultigridOptions.phase_space: needs the shell's rest geometry "
+                             "(MultigridLinearSystem(..., geometry=(vertices, faces)))")
+        vertex_matrices = tuple(p[::3, ::3].tocsr() for p in self.p_scipy)
+        return PhaseSpace(*geometry, hat_matrix(vertex_matrices, self.options.phase_level))
+
+    def set_state(self, x: np.ndarray, target: np.ndarray | None) -> None:
+        """Positions and penalty target of the next set-up (the phase space's test fields).
+
+        ``target`` None: the rest positions (the test fields are then the displacement's).
+        """
+        if self.phase is not None:
+            y = self.phase.rest if target is None else np.asarray(target).reshape(-1, 3)
+            self._state = (np.asarray(x).reshape(-1, 3), y)
 
     # ----------------------------------------------------------------------------- set-up
 
@@ -578,11 +619,39 @@ class MultigridLinearSystem:
         self._refresh_products()
         self._refresh_smoothers()
         self._ksp.setUp()
+        self._update_phase()
         self._current = (ev, tau)
         elapsed = time.perf_counter() - start
         self.stats.setups += 1
         self.stats.setup_time += elapsed
         return FactorReport(success=True, numeric_time=elapsed, shift=float(tau))
+
+    def _update_phase(self) -> None:
+        """Phase space: new test fields and Galerkin matrix (used only if it is SPD)."""
+        self._phase_ready = False
+        if self.phase is None:
+            return
+        assert self._fine is not None  # set by factorize (internal invariant)
+        x, y = self._state if self._state is not None else (self.phase.rest, self.phase.rest)
+        self.phase.set_fields(x, y)
+        self._phase_ready = self.phase.update(self._fine.mat, self._products[-1].g)
+        if self._balanced is None:
+            self._balanced = self._balanced_ksp()
+
+    def _balanced_ksp(self) -> Any:
+        """CG (unpreconditioned norm, from ``x_0 = Q b``) preconditioned by A-DEF2 around PCMG."""
+        assert self.phase is not None  # only with the phase space (internal invariant)
+        ksp: Any = PETSc.KSP().create(PETSc.COMM_SELF)
+        ksp.setType("cg")
+        ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+        ksp.setInitialGuessNonzero(True)
+        ksp.setOperators(self._operators[-1])
+        pc: Any = ksp.getPC()
+        pc.setType(PETSc.PC.Type.PYTHON)
+        pc.setPythonContext(BalancedPreconditioner(self._operators[-1], self._ksp.getPC(),
+                                                   self.phase))
+        ksp.setUp()
+        return ksp
 
     def _set_penalty(self, g: sp.csr_matrix | None) -> None:
         """Build the constant chain ``G_l = G_{l+1} P_l`` (again only if G changes)."""
@@ -597,6 +666,7 @@ class MultigridLinearSystem:
         self._coarse_penalty = None if g0 is None else (g0.T @ g0).tocsr()
         self._coarse_pattern = None
         self._ksp = None  # the level operators change: rebuilt by _update_coarse/_create_ksp
+        self._balanced = None
 
     def _galerkin_products(self) -> None:
         """``A_l = P_l^T A_{l+1} P_l`` from the finest down (symbolic product reused)."""
@@ -613,7 +683,7 @@ class MultigridLinearSystem:
 
     def _update_coarse(self) -> None:
         """Assemble ``A_0 + G_0^T G_0`` (the constant penalty part kept) into the coarse matrix."""
-        a0 = _scipy_of(self._galerkin[0])
+        a0 = scipy_csr(self._galerkin[0])
         penalty = self._coarse_penalty
         total = a0 if penalty is None else (a0 + penalty).tocsr()
         total.sort_indices()
@@ -622,6 +692,7 @@ class MultigridLinearSystem:
             self._coarse_pattern = total
             self._coarse = _aij(total)
             self._ksp = None
+            self._balanced = None
             return
         self._coarse.setValuesCSR(total.indptr.astype(PETSc.IntType),
                                   total.indices.astype(PETSc.IntType), total.data)
@@ -802,15 +873,18 @@ class MultigridLinearSystem:
 
     def _cg(self, rhs: np.ndarray) -> tuple[np.ndarray, int, int]:
         """``(x, iterations, converged reason)`` of one CG solve from x = 0."""
+        ksp = self._balanced if self._phase_ready else self._ksp
         b, x = self._operators[-1].createVecs()
         b.setArray(np.ascontiguousarray(rhs, dtype=np.float64))
         x.set(0.0)
-        self._ksp.setTolerances(rtol=self.eta, atol=0.0, max_it=self.options.max_iterations)
-        self._ksp.solve(b, x)
+        if self._phase_ready:
+            ksp.getPC().getPythonContext().start(b, x)
+        ksp.setTolerances(rtol=self.eta, atol=0.0, max_it=self.options.max_iterations)
+        ksp.solve(b, x)
         out = x.getArray().copy()
         for vec in (b, x):
             vec.destroy()
-        return out, int(self._ksp.getIterationNumber()), int(self._ksp.getConvergedReason())
+        return out, int(ksp.getIterationNumber()), int(ksp.getConvergedReason())
 
     def _fallback(self, rhs: np.ndarray) -> np.ndarray:
         """Direct solve of the current system, or NaN (a failed direction) without fallback."""

@@ -553,7 +553,8 @@ class ShellNewtonSolver:
                 raise InputError("ShellNewtonOptions.linear_method: 'multigrid' needs the "
                                  "subdivision hierarchy (ShellNewtonSolver(..., hierarchy=))")
             self.krylov = MultigridLinearSystem(hierarchy.prolongations(),
-                                                self.options.multigrid, fallback=self.direct)
+                                                self.options.multigrid, fallback=self.direct,
+                                                geometry=(hierarchy.vertices, hierarchy.faces))
             self.linear = self.krylov
         self._last_shift = 0.0
         self._factor_age = 0  # iterations served by the current factorisation (0 = none)
@@ -676,6 +677,7 @@ class ShellNewtonSolver:
         assert ev.grad is not None  # order >= 1 evaluation
         if self.krylov is not None:
             self.krylov.set_gradient_norm(float(np.linalg.norm(ev.grad)), self._target)
+            self.krylov.set_state(x, getattr(self.energy, "target", None))
         cg_before = self._krylov_count()
         if self._reuse_next():
             found = self._direction(x, ev, timers)

@@ -1,0 +1,293 @@
+"""Wrinkle-phase coarse space: a second coarse correction for the soft band of a wrinkled shell.
+
+Near a wrinkled minimum the multigrid-preconditioned shell Newton matrix has a whole band of
+soft modes (:mod:`solvers.multigrid`, session-4 Ritz values): compression balances bending, so
+shifting the wrinkles sideways costs almost nothing. Such a mode is a *smooth envelope times
+the wrinkle carrier*, ``a(X) d_X w``: oscillatory at the fine scale (no coarse level of the
+subdivision hierarchy can represent it) yet of low energy (no smoother reduces it). This is the
+near-kernel of a Helmholtz-like operator, and the remedy follows the wave-ray idea (Brandt &
+Livshits, SIAM J. Sci. Comput. 18, 1997) and the local "multiscale" coarse spaces of spectral
+AMGe / GenEO: build the coarse basis from the carrier modulated by coarse hats.
+
+The basis: with ``d = x - y`` the wrinkle displacement (positions minus the penalty target),
+``D_k`` the surface gradient along the ambient rest direction ``e_k`` (:func:`surface_gradients`)
+and ``(u_j, v_j)`` a tangent frame at coarse hat j (:func:`hat_frames`), the test fields of hat j
+are
+
+    t_0 = d,  t_1 = sum_k u_jk D_k d,  t_2 = sum_k v_jk D_k d        (n, 3) each,
+
+-- the wrinkles and their phase-shifted partners (for ``w = sin(k x)``, ``D_x w ~ cos(k x)``) --
+and the columns are every coarse hat ``phi_j`` (vertex hats of hierarchy level ``phase_level``,
+the product of the subdivision matrices from there to the shell) times its test fields:
+
+    Z[3 v + c, 3 j + m] = phi_j(v) t_m[v, c] / ||column||,
+
+so ``span Z`` holds every coarse-scale modulation of the amplitude and phase of the wrinkles.
+(The three ambient derivatives are linearly dependent on a surface, ``n . grad = 0``; the
+per-hat frame keeps two independent ones.) Z's pattern is fixed (the hats'); its values follow x
+every Newton iteration. The coarse matrix ``A_Z = Z^T (A + tau I + G^T G) Z`` is a Galerkin
+product (``MatPtAP`` with the symbolic part reused, the penalty ``(G Z)^T (G Z)`` added),
+factorised by MUMPS LDL^T; its inertia tells whether it is positive definite (else the
+multigrid runs alone for that matrix: ``Z^T A Z`` indefinite means A is). A zero column (no
+wrinkles under a hat) is kept with a unit diagonal so the pattern never changes.
+
+The correction enters CG as the deflation preconditioner A-DEF2 of Tang, Nabben, Vuik &
+Erlangga (J. Sci. Comput. 39, 2009), ``P = M + Q (I - A M)`` with ``Q = Z A_Z^{-1} Z^T`` and M
+the multigrid V-cycle, from the start ``x_0 = Q b``: the CG residuals then satisfy
+``Z^T r = 0``, where P equals the symmetric balancing preconditioner
+``Q + (I - QA) M (I - AQ)`` (Mandel, Commun. Numer. Methods Eng. 9, 1993). One application is
+one V-cycle, one product with A and one coarse solve.
+
+Measured (2026-11-25, quiet machine):
+
+* recorded Newton systems of the 160k warm-started frame of benchmarks/iterative.py (exact
+  Hessian at tau = 0, CG to the true residual 1e-8, prototype with four fields): multigrid
+  alone 200 / 197 CG iterations, with the phase space at level 0 (676 hats) 66 / 65, at level
+  1 (2601 hats) 62. The displacement field alone does not help (40k: 113 -> 109 iterations),
+  the derivative fields alone do (113 -> 49): the soft band is the phase of the wrinkles;
+* the whole frame (``python benchmarks/iterative.py --sizes 160k --hessian exact
+  --to-tolerance 1e-8 --methods direct multigrid-phase-ew multigrid-phase-ew-d1
+  multigrid-phase multigrid-fast-ew --breakdown``): the direct solve's 6 Newton iterations and
+  minimiser (max vertex difference 1.5e-11) with 86 CG iterations instead of 241 and 4.12 s
+  CPU per Newton iteration instead of 5.45 (direct 18.1); with one Chebyshev step per level
+  109 CG iterations, 3.94 s. CPU per Newton iteration of the 4.12 s: CG 1.45, set-up 1.6
+  (SBAIJ copies 0.71 with their one-time creation, phase space 0.61 of which the ``MatPtAP``
+  0.3 per set-up, Galerkin levels 0.36), evaluation 0.48. One application of the
+  preconditioner: V-cycle 83 ms, A-DEF2 86 ms, a product with A 11 ms, Q 5.5 ms;
+* tests/test_phase_space.py, a 2401-vertex wrinkled plate: 78 -> 49 CG iterations.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numba
+import numpy as np
+import scipy.sparse as sp
+
+from models.backend import PETSc
+from models.errors import InputError
+from solvers.linear import LinearSolverOptions, SparseDirectSolver
+
+TEST_FIELDS: int = 3
+"""Test fields per hat: the wrinkle displacement and its derivatives along the hat's two
+tangent directions."""
+
+
+def surface_gradients(vertices: np.ndarray, faces: np.ndarray) -> tuple[sp.csr_matrix, ...]:
+    """Vertex surface-gradient operators ``(D_1, D_2, D_3)`` of the P1 field on a triangle mesh.
+
+    On a face with edges ``E = [x_1 - x_0, x_2 - x_0]`` (rest positions) the gradient of the
+    linear interpolant of f is ``E^T (E E^T)^{-1} [f_1 - f_0, f_2 - f_0]``, a tangent vector in
+    ambient coordinates; ``(D_k f)_v`` is component k of the area-weighted mean over the faces
+    at v. Frame-free, so it applies to any surface.
+
+    Args:
+        vertices: Rest positions ``(n, 3)``.
+        faces: Triangles ``(m, 3)``.
+
+    Returns:
+        Three sparse ``(n, n)`` matrices.
+
+    """
+    e = vertices[faces[:, 1:]] - vertices[faces[:, :1]]              # (m, 2, 3)
+    metric = e @ e.transpose(0, 2, 1)
+    area = 0.5 * np.linalg.norm(np.cross(e[:, 0], e[:, 1]), axis=1)
+    if np.any(area <= 0):
+        bad = int(np.argmin(area))
+        raise InputError(f"phase space: face {bad} {faces[bad].tolist()} has zero rest area")
+    # gradient of the barycentric basis functions 1, 2 (basis 0 is minus their sum)
+    basis = np.linalg.solve(metric, e).transpose(0, 2, 1)          # (m, 3 dirs, 2)
+    weights = area / np.bincount(faces.ravel(), np.repeat(area, 3), len(vertices))[faces].T
+    rows, cols = np.repeat(faces, 3, axis=1).ravel(), np.tile(faces, 3).ravel()
+    out = []
+    for k in range(3):
+        g = np.column_stack([-basis[:, k].sum(axis=1), basis[:, k, 0], basis[:, k, 1]])
+        vals = (weights.T[:, :, None] * g[:, None, :]).ravel()
+        out.append(sp.csr_matrix((vals, (rows, cols)), shape=(len(vertices),) * 2))
+    return tuple(out)
+
+
+def hat_frames(vertices: np.ndarray, faces: np.ndarray, hats: sp.csr_matrix) -> np.ndarray:
+    """Orthonormal tangent pairs ``(u_j, v_j)`` per hat, ``(n_c, 2, 3)``.
+
+    The hat's normal is the hat-weighted sum of the area-weighted face normals at its
+    vertices; ``u_j`` is the unit projection of the coordinate axis least aligned with it.
+    Derivatives along ``u_j, v_j`` are independent, where the three ambient ones are not
+    (``n . grad = 0``).
+    """
+    e = vertices[faces[:, 1:]] - vertices[faces[:, :1]]
+    area_normals = np.cross(e[:, 0], e[:, 1])
+    vertex_normals = np.zeros_like(vertices, dtype=np.float64)
+    for k in range(3):
+        np.add.at(vertex_normals, faces[:, k], area_normals)
+    normals = hats.T @ vertex_normals
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    axis = np.eye(3)[np.argmin(np.abs(normals), axis=1)]
+    u = axis - np.einsum("jd,jd->j", axis, normals)[:, None] * normals
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    return np.stack([u, np.cross(normals, u)], axis=1)
+
+
+def hat_matrix(subdivisions: tuple[sp.spmatrix, ...], level: int) -> sp.csr_matrix:
+    """Vertex hats of hierarchy level ``level`` on the shell: ``S_{L-1} ... S_level``."""
+    if not 0 <= level < len(subdivisions):
+        raise InputError(f"MultigridOptions.phase_level: must be in [0, {len(subdivisions)}), "
+                         f"got {level}")
+    hats = sp.csr_matrix(subdivisions[level])
+    for s in subdivisions[level + 1:]:
+        hats = (sp.csr_matrix(s) @ hats).tocsr()
+    hats.eliminate_zeros()
+    return hats
+
+
+class PhaseSpace:
+    """The coarse space Z, its Galerkin matrix and the correction ``Q r = Z A_Z^{-1} Z^T r``.
+
+    Args:
+        vertices: Rest positions of the shell ``(n, 3)``.
+        faces: Shell triangles.
+        hats: Vertex hats ``(n, n_c)`` (:func:`hat_matrix`).
+
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, hats: sp.csr_matrix) -> None:
+        self.gradients = surface_gradients(vertices, faces)
+        self.rest = np.asarray(vertices, dtype=np.float64)
+        frames = hat_frames(vertices, faces, hats)                     # (n_c, 2, 3)
+        coo = hats.tocoo()
+        # nonzero e of Z: dof 3 v + c, column 4 j + m, value hat(v, j) t_m[v, c]
+        v, j = np.repeat(coo.row, 3 * TEST_FIELDS), np.repeat(coo.col, 3 * TEST_FIELDS)
+        c = np.tile(np.repeat(np.arange(3), TEST_FIELDS), coo.nnz)
+        m = np.tile(np.arange(TEST_FIELDS), 3 * coo.nnz)
+        rows, cols = 3 * v + c, TEST_FIELDS * j + m
+        order = np.lexsort((cols, rows))
+        self.vertex, self.component, self.field = v[order], c[order], m[order]
+        self.hat_value, self.column = np.repeat(coo.data, 3 * TEST_FIELDS)[order], cols[order]
+        self.hat, self.frames = j[order], frames
+        self.n_columns = TEST_FIELDS * hats.shape[1]
+        indptr = np.searchsorted(rows[order], np.arange(3 * hats.shape[0] + 1))
+        self.values = np.zeros(rows.size, dtype=PETSc.ScalarType)
+        # PETSc wraps these arrays (no copy): they live as long as the matrix
+        self.csr = (indptr.astype(PETSc.IntType), self.column.astype(PETSc.IntType), self.values)
+        z: Any = PETSc.Mat()
+        z.createAIJWithArrays((3 * hats.shape[0], self.n_columns), self.csr,
+                              comm=PETSc.COMM_SELF)
+        z.assemble()
+        self.z = z
+        self._galerkin: Any = None
+        self._penalty: tuple[Any, Any] | None = None
+        self._g: Any = None
+        self._solver: SparseDirectSolver | None = None
+        self._work = z.createVecs()  # (coarse, fine)
+        self._solution = self._work[0].duplicate()
+
+    def set_fields(self, x: np.ndarray, target: np.ndarray) -> None:
+        """Z's values from the positions x and the penalty target y (both ``(n, 3)``)."""
+        d = np.asarray(x, dtype=np.float64).reshape(-1, 3) - target
+        grads = np.stack([g @ d for g in self.gradients], axis=-1)      # (n, 3 comp, 3 dir)
+        _z_values(self.values, self.hat_value, self.vertex, self.component, self.field,
+                  self.hat, self.frames, d, grads)
+        norms = np.bincount(self.column, self.values ** 2, self.n_columns)
+        scale = np.where(norms > 0, 1.0 / np.sqrt(np.where(norms > 0, norms, 1.0)), 0.0)
+        self.values *= scale[self.column]
+        self.z.stateIncrease()
+
+    def update(self, fine: Any, g: Any | None) -> bool:
+        """Factorise ``Z^T (A + G^T G) Z`` of the fine AIJ ``A`` (shift included).
+
+        Returns:
+            False when that matrix is not positive definite (an indefinite Newton matrix):
+            the caller then preconditions with the multigrid alone.
+
+        """
+        if self._galerkin is None:
+            self._galerkin = fine.PtAP(self.z)
+        else:
+            fine.PtAP(self.z, result=self._galerkin)
+        total = scipy_csr(self._galerkin)
+        if g is not None:
+            total = total + self._penalty_part(g)
+        diagonal = total.diagonal()
+        total = (total + sp.diags(np.where(diagonal > 0, 0.0, 1.0))).tocsr()
+        total.sort_indices()
+        return self._factorize(total)
+
+    def _penalty_part(self, g: Any) -> sp.csr_matrix:
+        """``(G Z)^T (G Z)`` with both products' symbolic parts reused."""
+        if self._penalty is None or g is not self._g:
+            self._g = g
+            gz = g.matMult(self.z)
+            self._penalty = (gz, gz.transposeMatMult(gz))
+        else:
+            gz, gtg = self._penalty
+            g.matMult(self.z, result=gz)
+            gz.transposeMatMult(gz, result=gtg)
+        return scipy_csr(self._penalty[1])
+
+    def _factorize(self, total: sp.csr_matrix) -> bool:
+        """MUMPS LDL^T of ``A_Z`` (analysis reused); False if it is not positive definite."""
+        if self._solver is None or self._solver.pattern.nnz != total.nnz:
+            self._solver = SparseDirectSolver(total, LinearSolverOptions(symmetric="ldlt"))
+        return self._solver.factorize(total).usable_spd
+
+    def correct(self, r: Any, out: Any) -> None:
+        """``out = Z A_Z^{-1} Z^T r``."""
+        assert self._solver is not None  # update() ran first (internal invariant)
+        coarse = self._work[0]
+        self.z.multTranspose(r, coarse)
+        self._solution.setArray(self._solver.solve(coarse.getArray()))
+        self.z.mult(self._solution, out)
+
+
+@numba.njit(cache=True)
+def _z_values(out: np.ndarray, hat_value: np.ndarray, vertex: np.ndarray, component: np.ndarray,
+              field: np.ndarray, hat: np.ndarray, frames: np.ndarray, d: np.ndarray,
+              grads: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """Z's values: ``hat * d[v, c]`` (field 0) or ``hat * frame_{j, m-1} . grad d[v, c]``."""
+    for e in range(out.size):
+        v, c, m = vertex[e], component[e], field[e]
+        if m == 0:
+            value = d[v, c]
+        else:
+            t = frames[hat[e], m - 1]
+            value = t[0] * grads[v, c, 0] + t[1] * grads[v, c, 1] + t[2] * grads[v, c, 2]
+        out[e] = hat_value[e] * value
+
+
+def scipy_csr(mat: Any) -> sp.csr_matrix:
+    """Copy a PETSc AIJ matrix into scipy CSR."""
+    indptr, indices, data = mat.getValuesCSR()
+    return sp.csr_matrix((data, indices, indptr), shape=mat.getSize())
+
+
+class BalancedPreconditioner:
+    """``PCPython`` context of the deflation preconditioner A-DEF2, ``M + Q (I - A M)``.
+
+    With the start ``x_0 = Q b`` (:meth:`start`) every CG residual satisfies ``Z^T r = 0``,
+    where A-DEF2 equals the balancing preconditioner ``Q + (I - QA) M (I - AQ)`` (Tang et
+    al. 2009, sec. 3.1) at one product with A and one coarse solve per iteration instead of
+    two of each.
+
+    Args:
+        operator: The Newton matrix A (PETSc Mat, penalty included).
+        multigrid: The set-up multigrid PC (M).
+        phase: The :class:`PhaseSpace` (Q).
+
+    """
+
+    def __init__(self, operator: Any, multigrid: Any, phase: PhaseSpace) -> None:
+        self.operator, self.multigrid, self.phase = operator, multigrid, phase
+        self.residual, self.product = (operator.createVecs()[0] for _ in range(2))
+
+    def start(self, b: Any, x: Any) -> None:
+        """``x = Q b``: the initial guess that makes ``Z^T r_0 = 0``."""
+        self.phase.correct(b, x)
+
+    def apply(self, pc: Any, r: Any, y: Any) -> None:  # noqa: ARG002 (petsc4py signature)
+        """``y = M r + Q (r - A M r)``."""
+        self.multigrid.apply(r, y)
+        self.operator.mult(y, self.product)
+        self.residual.waxpy(-1.0, self.product, r)
+        self.phase.correct(self.residual, self.product)
+        y.axpy(1.0, self.product)

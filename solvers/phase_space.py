@@ -49,7 +49,8 @@ Measured (2026-11-25, quiet machine):
   --to-tolerance 1e-8 --methods direct multigrid-phase-ew multigrid-phase-ew-d1
   multigrid-phase multigrid-fast-ew --breakdown``): the direct solve's 6 Newton iterations and
   minimiser (max vertex difference 1.5e-11) with 86 CG iterations instead of 241 and 4.12 s
-  CPU per Newton iteration instead of 5.45 (direct 18.1); with one Chebyshev step per level
+  CPU per Newton iteration instead of 5.45 (a second run: 4.05 against 4.98; direct 18.1,
+  cached from an earlier run under load 2); with one Chebyshev step per level
   109 CG iterations, 3.94 s. CPU per Newton iteration of the 4.12 s: CG 1.45, set-up 1.6
   (SBAIJ copies 0.71 with their one-time creation, phase space 0.61 of which the ``MatPtAP``
   0.3 per set-up, Galerkin levels 0.36), evaluation 0.48. One application of the

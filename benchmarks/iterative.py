@@ -22,7 +22,8 @@ same start with the same Hessian mode (``--hessian``, default the PSD "gauss_new
 * ``multigrid-phase``, ``multigrid-phase-ew``, ``multigrid-phase-tight``: ``multigrid-fast``,
   ``-fast-ew`` and ``-fast-tight`` with the wrinkle-phase coarse space
   (:mod:`solvers.phase_space`, ``MultigridOptions.phase_space``); ``multigrid-phase-ew-d1``
-  the EW one with one Chebyshev step per level.
+  the EW one with one Chebyshev step per level, ``multigrid-phase-ew-l1`` with the hats of
+  hierarchy level 1.
 
 Each runs ``--iterations`` Newton iterations (or stops at ``--rtol``) and reports the time per
 Newton iteration (evaluation + linear solve + line search), the split, CG iterations, the
@@ -32,7 +33,7 @@ under 2 s with the same convergence as the direct solve.
 
 ``--to-tolerance RTOL`` instead solves a warm-started frame to ``||g|| <= RTOL ||g_0||`` with
 every method: the plate's minimiser at 7 % compression (:func:`prepared`, grid-sequenced and
-cached under ``.cache/iterative/``) moved with a target compressed ``--increment`` more
+cached under :data:`CACHE`) moved with a target compressed ``--increment`` more
 (:func:`frame_scene`). The direct solve runs once and is cached there too
 (``--fresh-direct`` reruns it). Per method: Newton iterations and the difference to the
 direct count, CPU and wall time per iteration and in total, CG iterations, set-ups, the
@@ -72,7 +73,7 @@ from models.backend import PETSc  # noqa: E402
 from models.shell.energy import ShellEnergy, ShellParams  # noqa: E402
 from models.shell.rest import RestState  # noqa: E402
 from models.shell.topology import ShellTopology  # noqa: E402
-from solvers.multigrid import MultigridOptions, ShellHierarchy  # noqa: E402
+from solvers.multigrid import KrylovStats, MultigridOptions, ShellHierarchy  # noqa: E402
 from solvers.shell_newton import (  # noqa: E402
     ModifiedNewtonOptions,
     ShellNewtonOptions,
@@ -85,7 +86,9 @@ LEVELS: dict[str, int] = {"10k": 2, "40k": 3, "160k": 4, "640k": 5, "2.5M": 6}
 COARSE_CELLS = 25
 COMPRESSION = 0.07
 RESULTS = Path(__file__).resolve().parent / "results" / "iterative.json"
-CACHE = Path(__file__).resolve().parents[1] / ".cache" / "iterative"
+CACHE = (Path(os.environ["WRINKLES_CACHE"]) if os.environ.get("WRINKLES_CACHE")
+         else Path(__file__).resolve().parents[1] / ".cache") / "iterative"
+"""Prepared minimisers and direct solves: ``$WRINKLES_CACHE/iterative`` or ``.cache/iterative``."""
 PREPARE = ShellNewtonOptions(rtol=1e-6, hessian="exact", far_hessian="gauss_newton")
 """Newton options of the grid-sequenced preparation of a frame (:func:`prepared`), up to 40k."""
 PREPARE_MG = ShellNewtonOptions(
@@ -120,6 +123,9 @@ METHODS: dict[str, dict] = {
                                                 forcing="eisenstat_walker")},
     "multigrid-phase-ew-d1": {"linear_method": "multigrid",
                               "multigrid": replace(FAST, phase_space=True, smoother_degree=1,
+                                                   forcing="eisenstat_walker")},
+    "multigrid-phase-ew-l1": {"linear_method": "multigrid",
+                              "multigrid": replace(FAST, phase_space=True, phase_level=1,
                                                    forcing="eisenstat_walker")},
     "multigrid-phase-tight": {"linear_method": "multigrid",
                               "multigrid": replace(FAST, phase_space=True, rtol=1e-8,
@@ -170,7 +176,7 @@ def prepared(levels: int) -> np.ndarray:
     Grid sequencing: the 2-level plate is solved from its noisy flat start, every finer one
     from ``S_{l-1} x_{l-1}`` (the coarser minimiser prolonged by its subdivision matrix), with
     :data:`PREPARE` (direct) up to 40k and :data:`PREPARE_MG` above. Cached under
-    ``.cache/iterative/``.
+    :data:`CACHE`.
     """
     path = CACHE / f"prepared_L{levels}_{COARSE_CELLS}_{COMPRESSION}.npz"
     if path.exists():
@@ -231,7 +237,13 @@ def cpu_timed(obj: object, names: tuple[str, ...], totals: dict[str, float]) -> 
 
 
 def solve_row(scene: Scene, method: str, args: argparse.Namespace) -> tuple[dict, np.ndarray]:
-    """One Newton solve with ``method``: ``(row of the table, final positions)``."""
+    """Newton solves with ``method``: ``(row of the table, final positions)``.
+
+    With ``--repeat N`` the same solver solves the frame N times from the same start and the
+    row is the last solve's (the solver's one-time set-up -- symbolic products, SBAIJ copies,
+    KSP creation -- paid by the first, as in a frame loop); ``cpu_first`` keeps the first
+    solve's CPU seconds.
+    """
     opts = ShellNewtonOptions(rtol=args.rtol, max_iterations=args.iterations,
                               hessian=args.hessian, **METHODS[method])
     rss0 = proc_status_mib("VmRSS")
@@ -244,25 +256,39 @@ def solve_row(scene: Scene, method: str, args: argparse.Namespace) -> tuple[dict
         cpu_timed(solver, CPU_PARTS["newton"], parts)
         if solver.krylov is not None:
             cpu_timed(solver.krylov, CPU_PARTS["krylov"], parts)
-    try:
-        x, report = solver.minimize(scene.x0)
-        reason = report.reason
-    except ShellSolveError as err:
-        x, report, reason = err.x, err.report, f"failed: {err.report.reason}"
+    cpu_first = 0.0
+    for repeat in range(max(getattr(args, "repeat", 1), 1)):
+        if repeat:
+            parts.clear()
+            cpu_first, cpu0 = (cpu_first or time.process_time() - cpu0), time.process_time()
+            if solver.krylov is not None:
+                solver.krylov.stats = KrylovStats()
+        x, report, reason = _minimize(solver, scene.x0)
     row = row_of(method, report, reason, proc_status_mib("VmHWM") - rss0)
     row["cpu_total"] = time.process_time() - cpu0
+    row["cpu_first"] = cpu_first or row["cpu_total"]
     row["cpu_parts_per_iteration"] = {k: v / max(report.iterations, 1) for k, v in parts.items()}
     row["cpu_iteration"] = row["cpu_total"] / max(report.iterations, 1)
     if solver.krylov is not None:
         stats = solver.krylov.stats
         row.update(true_residual_max=max(stats.true_residuals, default=None),
                    setups=stats.setups, eigen_estimates=stats.eigen_estimates,
-                   cg_per_solve=stats.iterations)
+                   cg_per_solve=stats.iterations, indefinite_skips=stats.indefinite_skips)
     return row, np.asarray(x)
 
 
+def _minimize(solver: ShellNewtonSolver, x0: np.ndarray
+              ) -> tuple[np.ndarray, ShellSolveReport, str]:
+    """``(x, report, reason)`` of one solve; a failed one gives its last state."""
+    try:
+        x, report = solver.minimize(x0)
+        return x, report, report.reason
+    except ShellSolveError as err:
+        return err.x, err.report, f"failed: {err.report.reason}"
+
+
 def cached_direct(scene: Scene, size: str, args: argparse.Namespace) -> tuple[dict, np.ndarray]:
-    """The direct solve of the frame, run once and cached under ``.cache/iterative/``."""
+    """The direct solve of the frame, run once and cached under :data:`CACHE`."""
     key = f"direct_{size}_{args.hessian}_{args.rtol:g}_{args.increment:g}_{args.iterations}"
     path = CACHE / f"{key}.npz"
     if path.exists() and not args.fresh_direct:
@@ -324,7 +350,8 @@ def print_row(size: str, n: int, r: dict) -> None:
 
 
 CONV_HEADER = (f"{'size':>5} {'method':>16} {'its':>4} {'+its':>4} {'cpu/it':>7} {'wall/it':>7} "
-               f"{'cpu tot':>8} {'wall tot':>8} {'cg':>5} {'fb':>3} {'fact#':>5} {'E gap':>8} "
+               f"{'cpu tot':>8} {'cpu 1st':>8} {'wall tot':>8} {'cg':>5} {'fb':>3} {'fact#':>5} "
+               f"{'E gap':>8} "
                f"{'max dx':>8} {'true res':>8} {'|g| final':>10}")
 
 
@@ -333,7 +360,8 @@ def print_conv_row(size: str, r: dict) -> None:
     res = r.get("true_residual_max")
     print(f"{size:>5} {r['method']:>16} {r['iterations']:>4} {r['extra_iterations']:>+4d} "
           f"{r['cpu_iteration']:7.3f} {r['t_iteration']:7.3f} {r['cpu_total']:8.2f} "
-          f"{r['t_total']:8.2f} {r['cg_iterations']:>5} {r['cg_fallbacks']:>3} "
+          f"{r.get('cpu_first', r['cpu_total']):8.2f} {r['t_total']:8.2f} "
+          f"{r['cg_iterations']:>5} {r['cg_fallbacks']:>3} "
           f"{r['factorizations']:>5} {r['energy_gap']:8.1e} {r['max_vertex_diff']:8.1e} "
           f"{'-' if res is None else f'{res:.1e}':>8} {r['grad_norms'][-1]:10.3e}", flush=True)
 
@@ -394,6 +422,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="extra compression of the warm-started frame (--to-tolerance)")
     p.add_argument("--fresh-direct", action="store_true",
                    help="rerun the direct solve instead of reading its cached result")
+    p.add_argument("--repeat", type=int, default=1,
+                   help="solve each frame N times with the same solver; report the last")
     p.add_argument("--breakdown", action="store_true",
                    help="record process CPU time per part (evaluation, set-up parts, CG)")
     p.add_argument("--quick", action="store_true", help="10k only")

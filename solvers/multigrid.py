@@ -90,9 +90,10 @@ iteration); the soft band moves within the frame. The refactorisation itself cos
 160k (MUMPS LDL^T of the augmented system, BLR 1e-10; BLR 1e-4 saves 12 % at 40k).
 Session 6: the soft band is the *phase* of the wrinkles (a smooth envelope times the carrier's
 derivative), which a coarse space of hats times the wrinkle field's derivatives captures
-(:mod:`solvers.phase_space`, ``MultigridOptions.phase_space``): on the same frame 86 instead of
-241 CG iterations and 4.1 instead of 5.4 s CPU per Newton iteration, the same 6 iterations;
-the 2 s is still not reached (set-up 1.6 s and evaluation 0.5 s per iteration alone).
+(:mod:`solvers.phase_space`, ``MultigridOptions.phase_space``): on the same frame 79 instead of
+241 CG iterations and 2.68 instead of 4.65 s CPU per Newton iteration (2.42 s with one
+Chebyshev step per level), the same 6 iterations and minimiser; the 2 s is still not reached
+(CG 1.2 s, evaluation 0.5 s, set-up 0.6 s per iteration).
 
 Inexact Newton: with ``forcing = "eisenstat_walker"`` the CG tolerance of Newton iteration k is
 Eisenstat & Walker's choice 2 (SIAM J. Sci. Comput. 17, 1996, eq. 2.6 with the safeguard of
@@ -103,7 +104,7 @@ sec. 3), ``eta_k = gamma (||g_k|| / ||g_{k-1}||)^alpha``, bounded below by
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numba
@@ -114,7 +115,13 @@ from models.backend import PETSc
 from models.embedding.subdivision import Subdivision, SubdivisionOptions, subdivide
 from models.errors import InputError
 from solvers.linear import FactorReport
-from solvers.phase_space import BalancedPreconditioner, PhaseSpace, hat_matrix, scipy_csr
+from solvers.phase_space import (
+    BalancedPreconditioner,
+    PhaseSpace,
+    hat_matrix,
+    petsc_aij,
+    scipy_csr,
+)
 
 FORCING: tuple[str, ...] = ("fixed", "eisenstat_walker")
 CYCLES: tuple[str, ...] = ("v", "w")
@@ -173,11 +180,13 @@ class MultigridOptions:
             hats times the wrinkle displacement and its tangential derivatives) as a
             deflation (A-DEF2) correction around the V-cycle: one V-cycle, one product with
             the Newton matrix and one small solve per CG iteration. It targets the soft band
-            of a wrinkled minimum (160k warm frame: 241 -> 86 CG iterations, 5.4 -> 4.1 s
+            of a wrinkled minimum (160k warm frame: 241 -> 79 CG iterations, 4.65 -> 2.68 s
             CPU per Newton iteration, the same 6 Newton iterations); used only while its
-            Galerkin matrix is positive definite (else the V-cycle alone). On the
+            Galerkin matrix is positive definite (else the V-cycle alone; an indefinite one
+            ends the set-up as a failed factorisation would). On the
             2610-vertex default scene (3 frames, CG to 1e-4) it costs more than it saves:
-            12.0 against 10.8 s wall, 80 against 86 shell iterations in frame 1.
+            shell stage 7.2 against 6.4 s; frame 1 ends in another (lower) wrinkled
+            minimum, W 0.07874 against 0.07941 (another sequence of shifted steps).
         phase_level: Hierarchy level whose vertex hats modulate the test fields (0 = the
             coarse mesh; ``3 n_level`` columns).
 
@@ -315,7 +324,7 @@ class _LowRankOperator:
 
     def __init__(self, a: Any, g: sp.csr_matrix | None) -> None:
         self.a = a
-        self.g = None if g is None else _aij(g)
+        self.g = None if g is None else petsc_aij(g)
         self.gx = None if self.g is None else self.g.createVecs()[1]
         self.g_diagonal = 0.0 if g is None else np.asarray(g.multiply(g).sum(axis=0)).ravel()
 
@@ -412,15 +421,22 @@ class _SymmetricCopy:
     (the Galerkin patterns are fixed); :meth:`refresh` gathers the current values and sets
     them block-row-wise into the same SBAIJ matrix: at 160k vertices 0.08 s for the fine
     level, against 0.2 s for a copy and ``MatConvert`` (benchmarks/iterative.py).
+
+    Args:
+        source: The AIJ matrix.
+        values: The source's value array itself when the caller owns it (the fine
+            :class:`FineMatrix`): read in place instead of through ``MatGetValuesCSR``, which
+            allocates a fresh copy of the whole CSR (225 MB at 160k) at every refresh.
+
     """
 
-    def __init__(self, source: Any) -> None:
-        indptr, indices, values = source.getValuesCSR()
+    def __init__(self, source: Any, values: np.ndarray | None = None) -> None:
+        indptr, indices, source_values = source.getValuesCSR()
         self.positions, self.slots, bptr, bidx = _upper_blocks(indptr, indices)
         self.bptr, self.bidx = bptr.astype(PETSc.IntType), bidx.astype(PETSc.IntType)
         self.values = np.zeros(9 * bidx.size)
-        self.source = source
-        self.values[self.slots] = values[self.positions]
+        self.source, self.source_values = source, values
+        self.values[self.slots] = source_values[self.positions]
         csr: Any = (self.bptr, self.bidx, self.values)
         mat: Any = PETSc.Mat().createSBAIJ(source.getSize(), 3, csr=csr, comm=PETSc.COMM_SELF)
         mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
@@ -429,7 +445,9 @@ class _SymmetricCopy:
 
     def refresh(self) -> None:
         """Copy the source's current values (same pattern) into the SBAIJ matrix."""
-        self.values[self.slots] = self.source.getValuesCSR()[2][self.positions]
+        values = self.source_values if self.source_values is not None \
+            else self.source.getValuesCSR()[2]
+        self.values[self.slots] = values[self.positions]
         self.mat.setValuesBlockedCSR(self.bptr, self.bidx, self.values)
         self.mat.assemble()
 
@@ -441,16 +459,6 @@ def _python_operator(product: _LowRankOperator) -> Any:
     mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
     mat.setUp()
     return mat
-
-
-def _aij(csr: sp.csr_matrix, block: int = 1) -> Any:
-    """Copy a scipy CSR matrix into a PETSc sequential AIJ (``block``: its block size)."""
-    c = sp.csr_matrix(csr)
-    c.sort_indices()
-    return PETSc.Mat().createAIJ(
-        c.shape, bsize=block,
-        csr=(c.indptr.astype(PETSc.IntType), c.indices.astype(PETSc.IntType),
-             c.data.astype(PETSc.ScalarType)), comm=PETSc.COMM_SELF)
 
 
 class FineMatrix:
@@ -499,6 +507,7 @@ class KrylovStats:
         true_residuals: True relative residual of every accepted CG solution.
         fallbacks: Solves handed to the direct solver.
         fallback_time: Seconds of that in the direct factorisation and solve.
+        indefinite_skips: Set-ups that stopped at an indefinite phase-space matrix.
 
     """
 
@@ -511,6 +520,7 @@ class KrylovStats:
     true_residuals: list[float] = field(default_factory=list)
     fallbacks: int = 0
     fallback_time: float = 0.0
+    indefinite_skips: int = 0
 
 
 class NewtonSystem(Protocol):
@@ -552,7 +562,7 @@ class MultigridLinearSystem:
             if fine.shape[1] != coarse.shape[0]:
                 raise InputError("MultigridLinearSystem: prolongation shapes do not chain")
         self.p_scipy = tuple(sp.csr_matrix(p) for p in prolongations)
-        self.p_mats = [_aij(p, block=3) for p in self.p_scipy]
+        self.p_mats = [petsc_aij(p, block=3) for p in self.p_scipy]
         self.options, self.fallback = options, fallback
         self.n = self.p_scipy[-1].shape[0]
         self.stats = KrylovStats()
@@ -575,6 +585,7 @@ class MultigridLinearSystem:
         self._bounds_stale = False
         self.phase = self._phase_space(geometry)
         self._state: tuple[np.ndarray, np.ndarray] | None = None
+        self._fields_stale = True
         self._balanced: Any = None
         self._phase_ready = False
 
@@ -595,12 +606,21 @@ class MultigridLinearSystem:
         """
         if self.phase is not None:
             y = self.phase.rest if target is None else np.asarray(target).reshape(-1, 3)
-            self._state = (np.asarray(x).reshape(-1, 3), y)
+            state = (np.array(x, dtype=np.float64).reshape(-1, 3), y)
+            if self._state is None or not all(
+                    np.array_equal(a, b) for a, b in zip(state, self._state, strict=True)):
+                self._state, self._fields_stale = state, True
 
     # ----------------------------------------------------------------------------- set-up
 
     def factorize(self, ev: Any, tau: float) -> FactorReport:
-        """Set the preconditioner up for ``ev.hess + tau I (+ G^T G)``; always "succeeds"."""
+        """Set the preconditioner up for ``ev.hess + tau I (+ G^T G)``.
+
+        Always "succeeds", except with the phase space: when its Galerkin matrix ``Z^T A Z``
+        has negative pivots, A is indefinite (a Rayleigh quotient ``z^T A z < 0``), and the
+        report says so without setting the multigrid up or running CG (the shell Newton then
+        moves on to the next shift).
+        """
         start = time.perf_counter()
         if ev.hess is None:
             raise InputError("energy.evaluate(order=2) returned no Hessian")
@@ -612,6 +632,12 @@ class MultigridLinearSystem:
             self._fine = FineMatrix(hess)
         self._fine.update(hess.data, tau)
         self._set_penalty(ev.penalty_factor)
+        same_matrix = self._current is not None and self._current[0] is ev
+        self._current = (ev, tau)
+        phase = self._update_phase(ev.penalty_factor, tau, same_matrix)
+        if phase is not None and phase.indefinite:
+            self.stats.indefinite_skips += 1
+            return self._setup_done(start, replace(phase, shift=float(tau)))
         self._galerkin_products()
         self._update_coarse()
         if self._ksp is None:
@@ -619,24 +645,37 @@ class MultigridLinearSystem:
         self._refresh_products()
         self._refresh_smoothers()
         self._ksp.setUp()
-        self._update_phase()
-        self._current = (ev, tau)
+        if self.phase is not None and self._balanced is None:
+            self._balanced = self._balanced_ksp()
+        return self._setup_done(start, FactorReport(success=True, shift=float(tau)))
+
+    def _setup_done(self, start: float, report: FactorReport) -> FactorReport:
+        """Count a set-up begun at ``start``; the report with its time."""
         elapsed = time.perf_counter() - start
         self.stats.setups += 1
         self.stats.setup_time += elapsed
-        return FactorReport(success=True, numeric_time=elapsed, shift=float(tau))
+        return replace(report, numeric_time=elapsed)
 
-    def _update_phase(self) -> None:
-        """Phase space: new test fields and Galerkin matrix (used only if it is SPD)."""
+    def _update_phase(self, g: sp.csr_matrix | None, tau: float, same_matrix: bool
+                      ) -> FactorReport | None:
+        """Phase space: new test fields, Galerkin matrix and its factorisation (None: off).
+
+        ``same_matrix``: the evaluation of the last set-up with another shift; with the same
+        state (:meth:`set_state`) the Galerkin matrix is shifted instead of recomputed.
+        ``_phase_ready`` says whether CG uses the correction (its matrix factorised and SPD).
+        """
         self._phase_ready = False
         if self.phase is None:
-            return
+            return None
         assert self._fine is not None  # set by factorize (internal invariant)
-        x, y = self._state if self._state is not None else (self.phase.rest, self.phase.rest)
-        self.phase.set_fields(x, y)
-        self._phase_ready = self.phase.update(self._fine.mat, self._products[-1].g)
-        if self._balanced is None:
-            self._balanced = self._balanced_ksp()
+        shift_only = same_matrix and not self._fields_stale
+        if not shift_only:
+            x, y = self._state if self._state is not None else (self.phase.rest,) * 2
+            self.phase.set_fields(x, y)
+            self._fields_stale = False
+        report = self.phase.update(self._fine.mat, g, tau, shift_only=shift_only)
+        self._phase_ready = report.usable_spd
+        return report
 
     def _balanced_ksp(self) -> Any:
         """CG (unpreconditioned norm, from ``x_0 = Q b``) preconditioned by A-DEF2 around PCMG."""
@@ -690,7 +729,7 @@ class MultigridLinearSystem:
         if self._coarse is None or self._coarse_pattern is None \
                 or total.nnz != self._coarse_pattern.nnz:
             self._coarse_pattern = total
-            self._coarse = _aij(total)
+            self._coarse = petsc_aij(total)
             self._ksp = None
             self._balanced = None
             return
@@ -726,7 +765,9 @@ class MultigridLinearSystem:
         if len(self._sbaij) != len(self._products):
             # converting A_l itself breaks the reused MatPtAP (PETSc 3.25: a segfault when
             # A_l is a PtAP result, a wrong next product when it is the fine matrix): copy
-            self._sbaij = [_SymmetricCopy(a) for a in self._galerkin[1:]]
+            assert self._fine is not None  # set by factorize (internal invariant)
+            self._sbaij = [*(_SymmetricCopy(a) for a in self._galerkin[1:-1]),
+                           _SymmetricCopy(self._fine.mat, self._fine.values)]
         for product, copy in zip(self._products, self._sbaij, strict=True):
             copy.refresh()
             product.a = copy.mat

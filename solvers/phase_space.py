@@ -45,16 +45,30 @@ Measured (2026-11-25, quiet machine):
   alone 200 / 197 CG iterations, with the phase space at level 0 (676 hats) 66 / 65, at level
   1 (2601 hats) 62. The displacement field alone does not help (40k: 113 -> 109 iterations),
   the derivative fields alone do (113 -> 49): the soft band is the phase of the wrinkles;
-* the whole frame (``python benchmarks/iterative.py --sizes 160k --hessian exact
-  --to-tolerance 1e-8 --methods direct multigrid-phase-ew multigrid-phase-ew-d1
-  multigrid-phase multigrid-fast-ew --breakdown``): the direct solve's 6 Newton iterations and
-  minimiser (max vertex difference 1.5e-11) with 86 CG iterations instead of 241 and 4.12 s
-  CPU per Newton iteration instead of 5.45 (a second run: 4.05 against 4.98; direct 18.1,
-  cached from an earlier run under load 2); with one Chebyshev step per level
-  109 CG iterations, 3.94 s. CPU per Newton iteration of the 4.12 s: CG 1.45, set-up 1.6
-  (SBAIJ copies 0.71 with their one-time creation, phase space 0.61 of which the ``MatPtAP``
-  0.3 per set-up, Galerkin levels 0.36), evaluation 0.48. One application of the
-  preconditioner: V-cycle 83 ms, A-DEF2 86 ms, a product with A 11 ms, Q 5.5 ms;
+* the whole frame, CPU seconds per Newton iteration of the second of two solves by one solver
+  (the first pays the one-time set-up; its figure in parentheses), 2026-11-25 19:06Z, quiet
+  (``python benchmarks/iterative.py --sizes 160k --hessian exact --to-tolerance 1e-8
+  --methods direct multigrid-phase-ew multigrid-fast-ew multigrid-phase-ew-d1
+  multigrid-phase-ew-l1 --repeat 2 --breakdown``). Every row keeps the direct solve's 6
+  Newton iterations and minimiser (vertices within 3e-11):
+
+  ===========================  =====  ===========  ===================================
+  method                       CG     s / it       CPU per iteration
+  ===========================  =====  ===========  ===================================
+  direct (cached, load 2)      -      18.1         factorisation 17.4
+  multigrid-fast-ew            241    4.65 (4.91)  CG 3.39, evaluation 0.60
+  multigrid-phase-ew           79     2.68 (3.52)  CG 1.33, evaluation 0.59, phase 0.32
+  multigrid-phase-ew-d1        102    2.42 (3.13)  CG 1.17, evaluation 0.52, phase 0.30
+  multigrid-phase-ew-l1        72     2.83 (3.71)  CG 1.29, phase 0.59
+  ===========================  =====  ===========  ===================================
+
+  (-d1: one Chebyshev step per level; -l1: the 2601 hats of level 1.) The rest of an
+  iteration is the multigrid's Galerkin levels (0.21 s) and SBAIJ copies (0.10 s). Two
+  things make the phase space cheap beyond the CG iterations it saves: an indefinite
+  ``Z^T A Z`` ends the set-up before the multigrid is built (3 of the 4 shifts of the
+  frame's first iteration), and a retry with another shift of the same evaluation adds
+  ``(tau - tau') Z^T Z`` instead of recomputing ``Z^T A Z`` (``A Z`` alone is 0.17 s);
+* one application: V-cycle 83 ms, A-DEF2 86 ms, a product with A 11 ms, Q 5.5 ms;
 * tests/test_phase_space.py, a 2401-vertex wrinkled plate: 78 -> 49 CG iterations.
 """
 
@@ -68,7 +82,7 @@ import scipy.sparse as sp
 
 from models.backend import PETSc
 from models.errors import InputError
-from solvers.linear import LinearSolverOptions, SparseDirectSolver
+from solvers.linear import FactorReport, LinearSolverOptions, SparseDirectSolver
 
 TEST_FIELDS: int = 3
 """Test fields per hat: the wrinkle displacement and its derivatives along the hat's two
@@ -177,8 +191,12 @@ class PhaseSpace:
         z.assemble()
         self.z = z
         self._galerkin: Any = None
+        self._az: Any = None
+        self._base: tuple[sp.csr_matrix, float] | None = None
+        self._gram: tuple[Any, sp.csr_matrix | None] = (None, None)
         self._penalty: tuple[Any, Any] | None = None
         self._g: Any = None
+        self._g_source: sp.csr_matrix | None = None
         self._solver: SparseDirectSolver | None = None
         self._work = z.createVecs()  # (coarse, fine)
         self._solution = self._work[0].duplicate()
@@ -193,44 +211,71 @@ class PhaseSpace:
         scale = np.where(norms > 0, 1.0 / np.sqrt(np.where(norms > 0, norms, 1.0)), 0.0)
         self.values *= scale[self.column]
         self.z.stateIncrease()
+        self._base, self._gram = None, (self._gram[0], None)
 
-    def update(self, fine: Any, g: Any | None) -> bool:
-        """Factorise ``Z^T (A + G^T G) Z`` of the fine AIJ ``A`` (shift included).
+    def update(self, fine: Any, g: sp.csr_matrix | None, tau: float = 0.0,
+               shift_only: bool = False) -> FactorReport:
+        """Factorise ``Z^T (A + tau I + G^T G) Z`` of the fine AIJ ``A + tau I``.
+
+        Args:
+            fine: The fine Newton matrix, shift included (PETSc AIJ).
+            g: The penalty factor G (scipy; copied to PETSc once per new object).
+            tau: The shift in ``fine``.
+            shift_only: ``fine`` differs from the one of the last full update (same fields)
+                by its shift alone: ``Z^T A Z + (tau - tau_last) Z^T Z`` is factorised
+                without the fine product (the shell Newton's retries with larger shifts).
 
         Returns:
-            False when that matrix is not positive definite (an indefinite Newton matrix):
-            the caller then preconditions with the multigrid alone.
+            The LDL^T report: ``usable_spd`` False (negative pivots: an indefinite Newton
+            matrix) means the caller must not use the correction.
 
         """
-        if self._galerkin is None:
-            self._galerkin = fine.PtAP(self.z)
+        if shift_only and self._base is not None:
+            base, base_tau = self._base
+            total = (base + (tau - base_tau) * self._gram_matrix()).tocsr()
         else:
-            fine.PtAP(self.z, result=self._galerkin)
-        total = scipy_csr(self._galerkin)
-        if g is not None:
-            total = total + self._penalty_part(g)
+            total = self._galerkin_matrix(fine)
+            if g is not None:
+                total = total + self._penalty_part(g)
+            self._base = (total, tau)
         diagonal = total.diagonal()
         total = (total + sp.diags(np.where(diagonal > 0, 0.0, 1.0))).tocsr()
         total.sort_indices()
-        return self._factorize(total)
+        if self._solver is None or self._solver.pattern.nnz != total.nnz:
+            self._solver = SparseDirectSolver(total, LinearSolverOptions(symmetric="ldlt"))
+        return self._solver.factorize(total)
 
-    def _penalty_part(self, g: Any) -> sp.csr_matrix:
+    def _galerkin_matrix(self, fine: Any) -> sp.csr_matrix:
+        """``Z^T (A Z)``: two products, symbolic parts reused (160k: 0.22 s; MatPtAP 0.30 s)."""
+        if self._az is None:
+            self._az = fine.matMult(self.z)
+            self._galerkin = self.z.transposeMatMult(self._az)
+        else:
+            fine.matMult(self.z, result=self._az)
+            self.z.transposeMatMult(self._az, result=self._galerkin)
+        return scipy_csr(self._galerkin)
+
+    def _gram_matrix(self) -> sp.csr_matrix:
+        """``Z^T Z`` of the current fields (computed at the first shift-only update)."""
+        mat, csr = self._gram
+        if csr is None:
+            mat = self.z.transposeMatMult(self.z) if mat is None else \
+                self.z.transposeMatMult(self.z, result=mat)
+            csr = scipy_csr(mat)
+            self._gram = (mat, csr)
+        return csr
+
+    def _penalty_part(self, g: sp.csr_matrix) -> sp.csr_matrix:
         """``(G Z)^T (G Z)`` with both products' symbolic parts reused."""
-        if self._penalty is None or g is not self._g:
-            self._g = g
-            gz = g.matMult(self.z)
+        if self._penalty is None or g is not self._g_source:
+            self._g_source, self._g = g, petsc_aij(g)
+            gz = self._g.matMult(self.z)
             self._penalty = (gz, gz.transposeMatMult(gz))
         else:
             gz, gtg = self._penalty
-            g.matMult(self.z, result=gz)
+            self._g.matMult(self.z, result=gz)
             gz.transposeMatMult(gz, result=gtg)
         return scipy_csr(self._penalty[1])
-
-    def _factorize(self, total: sp.csr_matrix) -> bool:
-        """MUMPS LDL^T of ``A_Z`` (analysis reused); False if it is not positive definite."""
-        if self._solver is None or self._solver.pattern.nnz != total.nnz:
-            self._solver = SparseDirectSolver(total, LinearSolverOptions(symmetric="ldlt"))
-        return self._solver.factorize(total).usable_spd
 
     def correct(self, r: Any, out: Any) -> None:
         """``out = Z A_Z^{-1} Z^T r``."""
@@ -254,6 +299,16 @@ def _z_values(out: np.ndarray, hat_value: np.ndarray, vertex: np.ndarray, compon
             t = frames[hat[e], m - 1]
             value = t[0] * grads[v, c, 0] + t[1] * grads[v, c, 1] + t[2] * grads[v, c, 2]
         out[e] = hat_value[e] * value
+
+
+def petsc_aij(csr: sp.csr_matrix, block: int = 1) -> Any:
+    """Copy a scipy CSR matrix into a PETSc sequential AIJ (``block``: its block size)."""
+    c = sp.csr_matrix(csr)
+    c.sort_indices()
+    return PETSc.Mat().createAIJ(
+        c.shape, bsize=block,
+        csr=(c.indptr.astype(PETSc.IntType), c.indices.astype(PETSc.IntType),
+             c.data.astype(PETSc.ScalarType)), comm=PETSc.COMM_SELF)
 
 
 def scipy_csr(mat: Any) -> sp.csr_matrix:

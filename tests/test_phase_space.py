@@ -80,6 +80,13 @@ def test_correction_is_the_a_orthogonal_projection_after_new_fields() -> None:
         gap = np.linalg.norm(qaq_r.getArray() - q_r.getArray()) / np.linalg.norm(q_r.getArray())
         print(f"amplitude {amplitude}: |QAQ r - Q r| / |Q r| = {gap:.1e}")
         assert gap < 1e-8
+        mg.factorize(ev, 2.0)  # the same evaluation shifted: Z^T A Z + 1.5 Z^T Z
+        assert phase._gram[1] is not None  # the shift-only path ran
+        phase.correct(_vec(mg.n, r), q_r)
+        phase.correct(_vec(mg.n, mg.apply(q_r.getArray())), qaq_r)
+        gap = np.linalg.norm(qaq_r.getArray() - q_r.getArray()) / np.linalg.norm(q_r.getArray())
+        print(f"  shifted without the fine product: |QAQ r - Q r| / |Q r| = {gap:.1e}")
+        assert gap < 1e-8
 
 
 def _vec(n: int, values: np.ndarray | None = None) -> PETSc.Vec:
@@ -137,3 +144,22 @@ def test_newton_with_phase_space_reaches_the_direct_minimiser(wrinkled) -> None:
     gap = float(np.max(np.abs(x - x_min)))
     print(f"{report.summary()}; max |x - x_direct| = {gap:.1e}")
     assert report.converged and gap < 1e-6
+
+
+def test_indefinite_phase_matrix_skips_the_multigrid_set_up() -> None:
+    """At the flat compressed start the exact Hessian is indefinite; ``Z^T A Z`` shows it."""
+    hier = ShellHierarchy.build(*grid_plate(6, 6), levels=3)
+    energy, x0 = shellcases.compressed_plate(hier.vertices, hier.faces, clusters=32)
+    ev = energy.evaluate(x0, hessian="exact")
+    mg = MultigridLinearSystem(hier.prolongations(), replace(FAST, phase_space=True),
+                               geometry=(hier.vertices, hier.faces))
+    mg.set_state(x0, energy.target)
+    report = mg.factorize(ev, 0.0)
+    print(f"tau = 0: negative pivots of Z^T A Z {report.negative_pivots}")
+    assert not report.usable_spd and report.negative_pivots and report.negative_pivots > 0
+    assert mg.stats.indefinite_skips == 1 and mg._ksp is None  # no multigrid set up
+    scale = float(np.mean(np.abs(ev.hess.diagonal())))
+    report = mg.factorize(ev, 10.0 * scale)  # shifted far enough: SPD, multigrid set up
+    assert report.usable_spd and mg._ksp is not None and mg.stats.indefinite_skips == 1
+    dx = mg.solve(-ev.grad)
+    assert mg.true_residual(dx, -ev.grad) < 1e-7

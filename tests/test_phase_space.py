@@ -87,6 +87,13 @@ def test_correction_is_the_a_orthogonal_projection_after_new_fields() -> None:
         gap = np.linalg.norm(qaq_r.getArray() - q_r.getArray()) / np.linalg.norm(q_r.getArray())
         print(f"  shifted without the fine product: |QAQ r - Q r| / |Q r| = {gap:.1e}")
         assert gap < 1e-8
+    mg.set_state(x0, None)  # an energy without a penalty target: d = x - rest positions
+    mg.factorize(ev, 0.5)
+    assert phase._gram[1] is None  # new fields: the full Galerkin product again
+    phase.correct(_vec(mg.n, r), q_r)
+    phase.correct(_vec(mg.n, mg.apply(q_r.getArray())), qaq_r)
+    assert np.linalg.norm(qaq_r.getArray() - q_r.getArray()) < 1e-8 * np.linalg.norm(
+        q_r.getArray())
 
 
 def _vec(n: int, values: np.ndarray | None = None) -> PETSc.Vec:

@@ -92,8 +92,9 @@ Session 6: the soft band is the *phase* of the wrinkles (a smooth envelope times
 derivative), which a coarse space of hats times the wrinkle field's derivatives captures
 (:mod:`solvers.phase_space`, ``MultigridOptions.phase_space``): on the same frame 79 instead of
 241 CG iterations and 2.68 instead of 4.65 s CPU per Newton iteration (2.42 s with one
-Chebyshev step per level), the same 6 iterations and minimiser; the 2 s is still not reached
-(CG 1.2 s, evaluation 0.5 s, set-up 0.6 s per iteration).
+Chebyshev step per level), the same 6 iterations and minimiser; with the penalty products on
+the vertex-level H (:class:`_LowRankOperator`) 2.43 s. The 2 s is still not reached (CG 1.2
+s, evaluation 0.5 s, set-up 0.65 s per iteration).
 
 Inexact Newton: with ``forcing = "eisenstat_walker"`` the CG tolerance of Newton iteration k is
 Eisenstat & Walker's choice 2 (SIAM J. Sci. Comput. 17, 1996, eq. 2.6 with the safeguard of
@@ -116,7 +117,7 @@ from models.embedding.subdivision import Subdivision, SubdivisionOptions, subdiv
 from models.errors import InputError
 from solvers.linear import FactorReport
 from solvers.phase_space import (
-    BalancedPreconditioner,
+    DeflatedPreconditioner,
     PhaseSpace,
     hat_matrix,
     petsc_aij,
@@ -316,22 +317,29 @@ def eisenstat_walker(grad_norm: float, previous_norm: float, previous_eta: float
 
 
 class _LowRankOperator:
-    """``MatPython`` context of ``A + G^T G`` (A and G PETSc AIJ; every product in C).
+    """``MatPython`` context of ``A + G^T G`` (A a PETSc matrix, G the penalty factor).
 
-    ``y = A x + G^T (G x)`` is three sparse products into preallocated vectors (``MatMult``,
-    ``MatMult`` and ``MatMultTransposeAdd``): no Python-side copy or allocation per call.
+    ``y = A x + G^T (G x)``: ``MatMult`` with A, then the penalty. When ``G = H (x) I_3``
+    (every level's factor is: ``G_l = (H S) (x) I_3``) the penalty is one numba pass over
+    the vertex-level H for all three coordinates (:func:`_add_low_rank`), 2.2 ms at 160k
+    against 3.9 ms for ``MatMult`` and ``MatMultTransposeAdd`` with the AIJ G (three times
+    the entries); any other G takes that PETSc path. No allocation per call.
     """
 
     def __init__(self, a: Any, g: sp.csr_matrix | None) -> None:
         self.a = a
-        self.g = None if g is None else petsc_aij(g)
+        self.vertex = None if g is None else _vertex_factor(g)
+        self.g = None if g is None or self.vertex is not None else petsc_aij(g)
         self.gx = None if self.g is None else self.g.createVecs()[1]
+        self.work = np.zeros(0 if g is None else g.shape[0])
         self.g_diagonal = 0.0 if g is None else np.asarray(g.multiply(g).sum(axis=0)).ravel()
 
     def mult(self, mat: Any, x: Any, y: Any) -> None:  # noqa: ARG002 (petsc4py signature)
         """``y = A x + G^T (G x)`` (``A x`` without a penalty)."""
         self.a.mult(x, y)
-        if self.g is not None:
+        if self.vertex is not None:
+            _add_low_rank(*self.vertex, x.getArray(readonly=True), y.getArray(), self.work)
+        elif self.g is not None:
             self.g.mult(x, self.gx)
             self.g.multTransposeAdd(self.gx, y, y)
 
@@ -339,6 +347,39 @@ class _LowRankOperator:
         """``d = diag(A) + colsum(G .* G)``."""
         self.a.getDiagonal(d)
         d.getArray()[:] += self.g_diagonal
+
+
+def _vertex_factor(g: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """CSR arrays of H when ``g = H (x) I_3`` exactly, else None."""
+    g = sp.csr_matrix(g)
+    if g.shape[0] % 3 or g.shape[1] % 3:
+        return None
+    h = sp.csr_matrix(g[::3, ::3])
+    h.sort_indices()
+    if g.nnz != 3 * h.nnz or (sp.kron(h, sp.identity(3), format="csr") != g).nnz:
+        return None
+    return h.indptr.astype(np.int64), h.indices.astype(np.int64), h.data.astype(np.float64)
+
+
+@numba.njit(cache=True)
+def _add_low_rank(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, x: np.ndarray,
+                  y: np.ndarray, work: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """``y += G^T (G x)`` for ``G = H (x) I_3`` (H in CSR; ``work``: ``G x``, 3 per row)."""
+    for c in range(indptr.size - 1):
+        a0 = a1 = a2 = 0.0
+        for k in range(indptr[c], indptr[c + 1]):
+            v, w = 3 * indices[k], data[k]
+            a0 += w * x[v]
+            a1 += w * x[v + 1]
+            a2 += w * x[v + 2]
+        work[3 * c], work[3 * c + 1], work[3 * c + 2] = a0, a1, a2
+    for c in range(indptr.size - 1):
+        a0, a1, a2 = work[3 * c], work[3 * c + 1], work[3 * c + 2]
+        for k in range(indptr[c], indptr[c + 1]):
+            v, w = 3 * indices[k], data[k]
+            y[v] += w * a0
+            y[v + 1] += w * a1
+            y[v + 2] += w * a2
 
 
 class _Jacobi:
@@ -586,7 +627,7 @@ class MultigridLinearSystem:
         self.phase = self._phase_space(geometry)
         self._state: tuple[np.ndarray, np.ndarray] | None = None
         self._fields_stale = True
-        self._balanced: Any = None
+        self._deflated: Any = None
         self._phase_ready = False
 
     def _phase_space(self, geometry: tuple[np.ndarray, np.ndarray] | None) -> PhaseSpace | None:
@@ -645,8 +686,8 @@ class MultigridLinearSystem:
         self._refresh_products()
         self._refresh_smoothers()
         self._ksp.setUp()
-        if self.phase is not None and self._balanced is None:
-            self._balanced = self._balanced_ksp()
+        if self.phase is not None and self._deflated is None:
+            self._deflated = self._deflated_ksp()
         return self._setup_done(start, FactorReport(success=True, shift=float(tau)))
 
     def _setup_done(self, start: float, report: FactorReport) -> FactorReport:
@@ -677,7 +718,7 @@ class MultigridLinearSystem:
         self._phase_ready = report.usable_spd
         return report
 
-    def _balanced_ksp(self) -> Any:
+    def _deflated_ksp(self) -> Any:
         """CG (unpreconditioned norm, from ``x_0 = Q b``) preconditioned by A-DEF2 around PCMG."""
         assert self.phase is not None  # only with the phase space (internal invariant)
         ksp: Any = PETSc.KSP().create(PETSc.COMM_SELF)
@@ -687,7 +728,7 @@ class MultigridLinearSystem:
         ksp.setOperators(self._operators[-1])
         pc: Any = ksp.getPC()
         pc.setType(PETSc.PC.Type.PYTHON)
-        pc.setPythonContext(BalancedPreconditioner(self._operators[-1], self._ksp.getPC(),
+        pc.setPythonContext(DeflatedPreconditioner(self._operators[-1], self._ksp.getPC(),
                                                    self.phase))
         ksp.setUp()
         return ksp
@@ -705,7 +746,7 @@ class MultigridLinearSystem:
         self._coarse_penalty = None if g0 is None else (g0.T @ g0).tocsr()
         self._coarse_pattern = None
         self._ksp = None  # the level operators change: rebuilt by _update_coarse/_create_ksp
-        self._balanced = None
+        self._deflated = None
 
     def _galerkin_products(self) -> None:
         """``A_l = P_l^T A_{l+1} P_l`` from the finest down (symbolic product reused)."""
@@ -731,7 +772,7 @@ class MultigridLinearSystem:
             self._coarse_pattern = total
             self._coarse = petsc_aij(total)
             self._ksp = None
-            self._balanced = None
+            self._deflated = None
             return
         self._coarse.setValuesCSR(total.indptr.astype(PETSc.IntType),
                                   total.indices.astype(PETSc.IntType), total.data)
@@ -914,7 +955,7 @@ class MultigridLinearSystem:
 
     def _cg(self, rhs: np.ndarray) -> tuple[np.ndarray, int, int]:
         """``(x, iterations, converged reason)`` of one CG solve from x = 0."""
-        ksp = self._balanced if self._phase_ready else self._ksp
+        ksp = self._deflated if self._phase_ready else self._ksp
         b, x = self._operators[-1].createVecs()
         b.setArray(np.ascontiguousarray(rhs, dtype=np.float64))
         x.set(0.0)

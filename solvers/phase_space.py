@@ -63,7 +63,11 @@ Measured (2026-11-25, quiet machine):
   ===========================  =====  ===========  ===================================
 
   (-d1: one Chebyshev step per level; -l1: the 2601 hats of level 1. A rerun of -d1 gave
-  2.48 s; with W-cycles it needs 76 CG iterations but the same 2.51 s.) The rest of an
+  2.48 s; with W-cycles it needs 76 CG iterations but the same 2.51 s.) With the penalty
+  products of the level operators done on the vertex-level H (``multigrid._add_low_rank``,
+  2.2 instead of 3.9 ms per product at 160k): multigrid-phase-ew 2.43 s (3.07 s first
+  solve; CG 1.17 s), -d1 2.49 s (CG 1.12 s, evaluation and phase space 0.55 and 0.35 s in
+  that run); The rest of an
   iteration is the multigrid's Galerkin levels (0.21 s) and SBAIJ copies (0.10 s). Two
   things make the phase space cheap beyond the CG iterations it saves: an indefinite
   ``Z^T A Z`` ends the set-up before the multigrid is built (3 of the 4 shifts of the
@@ -318,7 +322,7 @@ def scipy_csr(mat: Any) -> sp.csr_matrix:
     return sp.csr_matrix((data, indices, indptr), shape=mat.getSize())
 
 
-class BalancedPreconditioner:
+class DeflatedPreconditioner:
     """``PCPython`` context of the deflation preconditioner A-DEF2, ``M + Q (I - A M)``.
 
     With the start ``x_0 = Q b`` (:meth:`start`) every CG residual satisfies ``Z^T r = 0``,

@@ -290,3 +290,28 @@ def test_target_fraction_raises_the_last_cg_tolerance() -> None:
         MultigridOptions(level_format="baij")
     with pytest.raises(InputError, match="MultigridOptions.eigen_estimate"):
         MultigridOptions(eigen_estimate="solve", smoother_pc="sor")
+
+
+def test_low_rank_operator_vertex_kernel_matches_the_aij_product() -> None:
+    """``A x + G^T G x`` by the vertex-level kernel (``G = H (x) I_3``) and by PETSc AIJ."""
+    from solvers.multigrid import _LowRankOperator, _python_operator
+    from solvers.phase_space import petsc_aij
+
+    rng = np.random.default_rng(4)
+    n, c = 40, 7
+    h = sp.random(c, n, density=0.3, random_state=5, format="csr")
+    a = sp.random(3 * n, 3 * n, density=0.05, random_state=6, format="csr")
+    a = (a + a.T + sp.identity(3 * n)).tocsr()
+    kron = sp.kron(h, sp.identity(3), format="csr")
+    other = kron.tolil()
+    other[1, 3] = 0.5  # not H (x) I_3: the PETSc path
+    x = rng.standard_normal(3 * n)
+    for g, vertex in ((kron, True), (other.tocsr(), False)):
+        op = _LowRankOperator(petsc_aij(a), g)
+        assert (op.vertex is not None) == vertex
+        mat = _python_operator(op)
+        xv, yv = mat.createVecs()
+        xv.setArray(x)
+        mat.mult(xv, yv)
+        expected = a @ x + g.T @ (g @ x)
+        assert np.allclose(yv.getArray(), expected, rtol=1e-13, atol=1e-13)

@@ -93,8 +93,11 @@ derivative), which a coarse space of hats times the wrinkle field's derivatives 
 (:mod:`solvers.phase_space`, ``MultigridOptions.phase_space``): on the same frame 79 instead of
 241 CG iterations and 2.68 instead of 4.65 s CPU per Newton iteration (2.42 s with one
 Chebyshev step per level), the same 6 iterations and minimiser; with the penalty products on
-the vertex-level H (:class:`_LowRankOperator`) 2.43 s. The 2 s is still not reached (CG 1.2
-s, evaluation 0.5 s, set-up 0.65 s per iteration).
+the vertex-level H (:class:`_LowRankOperator`) 2.43 s (rerun 2.39 s). The 2 s is still not
+reached (CG 1.1-1.2 s, evaluation 0.5 s, set-up 0.6 s per iteration). Tried and not adopted:
+keeping the coarse levels of an earlier Newton iteration while the shift is unchanged (the
+same 79 CG iterations, Galerkin products 0.21 -> 0.15 s per iteration, the whole iteration
+2.70 s against 2.39 s in the same run: within the run-to-run spread of the other parts).
 
 Inexact Newton: with ``forcing = "eisenstat_walker"`` the CG tolerance of Newton iteration k is
 Eisenstat & Walker's choice 2 (SIAM J. Sci. Comput. 17, 1996, eq. 2.6 with the safeguard of

@@ -26,7 +26,8 @@ so ``span Z`` holds every coarse-scale modulation of the amplitude and phase of 
 (The three ambient derivatives are linearly dependent on a surface, ``n . grad = 0``; the
 per-hat frame keeps two independent ones.) Z's pattern is fixed (the hats'); its values follow x
 every Newton iteration. The coarse matrix ``A_Z = Z^T (A + tau I + G^T G) Z`` is a Galerkin
-product (``MatPtAP`` with the symbolic part reused, the penalty ``(G Z)^T (G Z)`` added),
+product (``Z^T (A Z)``, both products' symbolic parts reused, the penalty ``(G Z)^T (G Z)``
+added; a retry with another shift of the same matrix adds ``(tau - tau') Z^T Z`` instead),
 factorised by MUMPS LDL^T; its inertia tells whether it is positive definite (else the
 multigrid runs alone for that matrix: ``Z^T A Z`` indefinite means A is). A zero column (no
 wrinkles under a hat) is kept with a unit diagonal so the pattern never changes.
@@ -43,8 +44,9 @@ Measured (2026-11-25, quiet machine):
 * recorded Newton systems of the 160k warm-started frame of benchmarks/iterative.py (exact
   Hessian at tau = 0, CG to the true residual 1e-8, prototype with four fields): multigrid
   alone 200 / 197 CG iterations, with the phase space at level 0 (676 hats) 66 / 65, at level
-  1 (2601 hats) 62. The displacement field alone does not help (40k: 113 -> 109 iterations),
-  the derivative fields alone do (113 -> 49): the soft band is the phase of the wrinkles;
+  1 (2601 hats) 62. The displacement field alone does not help (40k, level-1 hats: 113 ->
+  109 iterations), the derivative fields alone do (113 -> 49): the soft band is the phase of
+  the wrinkles;
 * the whole frame, CPU seconds per Newton iteration of the second of two solves by one solver
   (the first pays the one-time set-up; its figure in parentheses), 2026-11-25 19:06Z, quiet
   (``python benchmarks/iterative.py --sizes 160k --hessian exact --to-tolerance 1e-8

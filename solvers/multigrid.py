@@ -648,12 +648,13 @@ class MultigridLinearSystem:
 
         ``target`` None: the rest positions (the test fields are then the displacement's).
         """
-        if self.phase is not None:
-            y = self.phase.rest if target is None else np.asarray(target).reshape(-1, 3)
-            state = (np.array(x, dtype=np.float64).reshape(-1, 3), y)
-            if self._state is None or not all(
-                    np.array_equal(a, b) for a, b in zip(state, self._state, strict=True)):
-                self._state, self._fields_stale = state, True
+        if self.phase is None:
+            return
+        y = self.phase.rest if target is None else np.asarray(target).reshape(-1, 3)
+        state = (np.array(x, dtype=np.float64).reshape(-1, 3), y)
+        if self._state is None or not all(
+                np.array_equal(a, b) for a, b in zip(state, self._state, strict=True)):
+            self._state, self._fields_stale = state, True
 
     # ----------------------------------------------------------------------------- set-up
 

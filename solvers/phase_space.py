@@ -178,7 +178,7 @@ class PhaseSpace:
         self.rest = np.asarray(vertices, dtype=np.float64)
         frames = hat_frames(vertices, faces, hats)                     # (n_c, 2, 3)
         coo = hats.tocoo()
-        # nonzero e of Z: dof 3 v + c, column 4 j + m, value hat(v, j) t_m[v, c]
+        # entry e of Z: dof 3 v + c, column TEST_FIELDS j + m, value hat(v, j) t_m[v, c]
         v, j = np.repeat(coo.row, 3 * TEST_FIELDS), np.repeat(coo.col, 3 * TEST_FIELDS)
         c = np.tile(np.repeat(np.arange(3), TEST_FIELDS), coo.nnz)
         m = np.tile(np.arange(TEST_FIELDS), 3 * coo.nnz)
@@ -205,8 +205,8 @@ class PhaseSpace:
         self._g: Any = None
         self._g_source: sp.csr_matrix | None = None
         self._solver: SparseDirectSolver | None = None
-        self._work = z.createVecs()  # (coarse, fine)
-        self._solution = self._work[0].duplicate()
+        self._coarse_rhs = z.createVecs()[0]
+        self._solution = self._coarse_rhs.duplicate()
 
     def set_fields(self, x: np.ndarray, target: np.ndarray) -> None:
         """Z's values from the positions x and the penalty target y (both ``(n, 3)``)."""
@@ -287,9 +287,8 @@ class PhaseSpace:
     def correct(self, r: Any, out: Any) -> None:
         """``out = Z A_Z^{-1} Z^T r``."""
         assert self._solver is not None  # update() ran first (internal invariant)
-        coarse = self._work[0]
-        self.z.multTranspose(r, coarse)
-        self._solution.setArray(self._solver.solve(coarse.getArray()))
+        self.z.multTranspose(r, self._coarse_rhs)
+        self._solution.setArray(self._solver.solve(self._coarse_rhs.getArray()))
         self.z.mult(self._solution, out)
 
 

@@ -677,7 +677,8 @@ class ShellNewtonSolver:
         assert ev.grad is not None  # order >= 1 evaluation
         if self.krylov is not None:
             self.krylov.set_gradient_norm(float(np.linalg.norm(ev.grad)), self._target)
-            self.krylov.set_state(x, getattr(self.energy, "target", None))
+            if self.krylov.phase is not None:  # its test fields follow x
+                self.krylov.set_state(x, getattr(self.energy, "target", None))
         cg_before = self._krylov_count()
         if self._reuse_next():
             found = self._direction(x, ev, timers)

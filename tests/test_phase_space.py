@@ -139,18 +139,25 @@ def test_phase_space_cuts_cg_iterations_at_the_wrinkled_minimum(wrinkled) -> Non
 
 
 def test_newton_with_phase_space_reaches_the_direct_minimiser(wrinkled) -> None:
+    """Same minimiser and Newton iterations as the multigrid alone, fewer CG iterations
+    (measured 128 against 199 in 5 Newton iterations)."""
     hier, energy, x_min = wrinkled
     start = x_min.copy()
     start[:, 0] += 2e-3 * np.sin(7.0 * hier.vertices[:, 1])  # a perturbed warm start
-    opts = ShellNewtonOptions(rtol=1e-8, hessian="exact", linear_method="multigrid",
-                              multigrid=MultigridOptions(rtol=1e-4, fallback=False,
-                                                         eigen_estimate="solve",
-                                                         phase_space=True))
-    solver = ShellNewtonSolver(energy, opts, hierarchy=hier)  # type: ignore[arg-type]
-    x, report = solver.minimize(start)
-    gap = float(np.max(np.abs(x - x_min)))
-    print(f"{report.summary()}; max |x - x_direct| = {gap:.1e}")
-    assert report.converged and gap < 1e-6
+    reports = {}
+    for phase in (False, True):
+        opts = ShellNewtonOptions(rtol=1e-8, hessian="exact", linear_method="multigrid",
+                                  multigrid=MultigridOptions(rtol=1e-4, fallback=False,
+                                                             eigen_estimate="solve",
+                                                             phase_space=phase))
+        solver = ShellNewtonSolver(energy, opts, hierarchy=hier)  # type: ignore[arg-type]
+        x, report = solver.minimize(start)
+        gap = float(np.max(np.abs(x - x_min)))
+        print(f"phase space {phase}: {report.summary()}; max |x - x_direct| = {gap:.1e}")
+        assert report.converged and gap < 1e-6
+        reports[phase] = report
+    assert reports[True].iterations == reports[False].iterations
+    assert reports[True].krylov_iterations < 0.8 * reports[False].krylov_iterations
 
 
 def test_indefinite_phase_matrix_skips_the_multigrid_set_up() -> None:

@@ -26,6 +26,10 @@ same start with the same Hessian mode (``--hessian``, default the PSD "gauss_new
   ``multigrid-phase-ew-l1`` with the hats of hierarchy level 1; ``--repeat 2`` reports the
   second of two solves by one solver (its one-time set-up paid by the first).
 
+``--threads T`` runs the element kernels (``ShellParams.threads``) and the multigrid's level and
+penalty products (``MultigridOptions.threads``) on T threads; the table then shows wall below
+CPU time, and ``--breakdown`` prints both per part.
+
 Each runs ``--iterations`` Newton iterations (or stops at ``--rtol``) and reports the time per
 Newton iteration (evaluation + linear solve + line search), the split, CG iterations, the
 gradient-norm history and its largest relative deviation from the direct run's ("same Newton
@@ -46,6 +50,8 @@ Usage::
     python benchmarks/iterative.py --quick                    # 10k (while developing)
     python benchmarks/iterative.py --sizes 10k 40k 160k       # the issue's sizes
     python benchmarks/iterative.py --sizes 160k --hessian exact --to-tolerance 1e-8
+    python benchmarks/iterative.py --sizes 160k --hessian exact --to-tolerance 1e-8 \
+        --methods multigrid-phase-ew --repeat 2 --breakdown --threads 2
 
 Prints a table and writes benchmarks/results/iterative.json (``--to-tolerance``:
 benchmarks/results/iterative_<sizes>_conv.json).
@@ -147,18 +153,19 @@ class Scene:
     setup_time: float
 
 
-def build_scene(size: str, compression: float = COMPRESSION) -> Scene:
+def build_scene(size: str, compression: float = COMPRESSION, threads: int = 1) -> Scene:
     """The wrinkling plate of ``size`` (see the module docstring)."""
-    return scene_at(LEVELS[size], compression)
+    return scene_at(LEVELS[size], compression, threads)
 
 
-def scene_at(levels: int, compression: float = COMPRESSION) -> Scene:
-    """The wrinkling plate subdivided ``levels`` times (see the module docstring)."""
+def scene_at(levels: int, compression: float = COMPRESSION, threads: int = 1) -> Scene:
+    """The wrinkling plate subdivided ``levels`` times (``threads``: the energy's kernels)."""
     t0 = time.perf_counter()
     hier = ShellHierarchy.build(*grid_plate(COARSE_CELLS, COARSE_CELLS), levels=levels)
     pts, faces = hier.vertices, hier.faces
     topo = ShellTopology.from_faces(faces, len(pts))
-    params = ShellParams(k_L=1e3, k_B=1e-1, k_P=1e3, penalty_hessian="low_rank")
+    params = ShellParams(k_L=1e3, k_B=1e-1, k_P=1e3, penalty_hessian="low_rank",
+                         threads=threads)
     energy = ShellEnergy(topo, RestState.from_positions(topo, pts), params,
                          H=cluster_matrix(pts, 75))
     energy.set_target(compressed(pts, compression))
@@ -197,14 +204,14 @@ def prepared(levels: int) -> np.ndarray:
     return x
 
 
-def frame_scene(size: str, increment: float) -> Scene:
+def frame_scene(size: str, increment: float, threads: int = 1) -> Scene:
     """A warm-started frame: the prepared minimiser moved with a target ``increment`` tighter.
 
     The target is the plate compressed ``COMPRESSION + increment``; the start is the prepared
     minimiser at ``COMPRESSION`` plus the target's displacement (the frame loop's warm start).
     """
     x_prev = prepared(LEVELS[size])
-    scene = build_scene(size)
+    scene = build_scene(size, threads=threads)
     pts = scene.hierarchy.vertices
     y_old, y_new = compressed(pts, COMPRESSION), compressed(pts, COMPRESSION + increment)
     scene.energy.set_target(y_new)
@@ -221,21 +228,28 @@ CPU_PARTS: dict[str, tuple[str, ...]] = {
     "krylov": ("_galerkin_products", "_refresh_products", "_update_coarse", "_create_ksp",
                "_refresh_smoothers", "_update_phase", "_cg", "true_residual", "_fallback"),
 }
-"""Methods whose process CPU time ``--breakdown`` accumulates: the shell Newton's evaluations
-and line search, the multigrid system's set-up parts, CG, true residual, direct fallback."""
+"""Methods whose process CPU and wall time ``--breakdown`` accumulates: the shell Newton's
+evaluations and line search, the multigrid system's set-up parts, CG, true residual, direct
+fallback."""
 
 
 def cpu_timed(obj: object, names: tuple[str, ...], totals: dict[str, float]) -> None:
-    """Wrap the bound methods ``names`` of ``obj`` to add their CPU seconds to ``totals``."""
+    """Wrap the bound methods ``names`` of ``obj`` to add their seconds to ``totals``.
+
+    ``totals[name]`` gets the process CPU seconds, ``totals[name + "@wall"]`` the wall ones
+    (they differ with ``--threads`` > 1).
+    """
     for name in names:
         method = getattr(obj, name)
 
         def timed(*a: object, _method=method, _name=name, **k: object) -> object:  # noqa: ANN001
-            start = time.process_time()
+            start, wall = time.process_time(), time.perf_counter()
             try:
                 return _method(*a, **k)
             finally:
                 totals[_name] = totals.get(_name, 0.0) + time.process_time() - start
+                key = _name + "@wall"
+                totals[key] = totals.get(key, 0.0) + time.perf_counter() - wall
 
         setattr(obj, name, timed)
 
@@ -250,6 +264,7 @@ def solve_row(scene: Scene, method: str, args: argparse.Namespace) -> tuple[dict
     """
     opts = ShellNewtonOptions(rtol=args.rtol, max_iterations=args.iterations,
                               hessian=args.hessian, **METHODS[method])
+    opts = replace(opts, multigrid=replace(opts.multigrid, threads=args.threads))
     rss0 = proc_status_mib("VmRSS")
     reset_peak_rss()
     cpu0 = time.process_time()
@@ -271,7 +286,10 @@ def solve_row(scene: Scene, method: str, args: argparse.Namespace) -> tuple[dict
     row = row_of(method, report, reason, proc_status_mib("VmHWM") - rss0)
     row["cpu_total"] = time.process_time() - cpu0
     row["cpu_first"] = cpu_first
-    row["cpu_parts_per_iteration"] = {k: v / max(report.iterations, 1) for k, v in parts.items()}
+    row["threads"] = args.threads
+    per_it = {k: v / max(report.iterations, 1) for k, v in parts.items()}
+    row["cpu_parts_per_iteration"] = {k: v for k, v in per_it.items() if "@" not in k}
+    row["wall_parts_per_iteration"] = {k.split("@")[0]: v for k, v in per_it.items() if "@" in k}
     row["cpu_iteration"] = row["cpu_total"] / max(report.iterations, 1)
     if solver.krylov is not None:
         stats = solver.krylov.stats
@@ -372,7 +390,7 @@ def print_conv_row(size: str, r: dict) -> None:
 
 def iterate_size(size: str, args: argparse.Namespace) -> list[dict]:
     """Every method from the flat start of ``size`` for ``--iterations`` Newton iterations."""
-    scene = build_scene(size)
+    scene = build_scene(size, threads=args.threads)
     n = scene.energy.n_vertices
     rows = [run_method(scene, m, args) for m in args.methods]
     deviation(rows)
@@ -384,17 +402,19 @@ def iterate_size(size: str, args: argparse.Namespace) -> list[dict]:
 
 
 def print_parts(rows: list[dict]) -> None:
-    """The ``--breakdown`` lines: CPU seconds per Newton iteration of each part."""
+    """The ``--breakdown`` lines: CPU (and wall) seconds per Newton iteration of each part."""
     for r in rows:
-        parts = r.get("cpu_parts_per_iteration") or {}
-        if parts:
-            print(f"  cpu/it {r['method']}: " + " ".join(
-                f"{k.strip('_')} {v:.3f}" for k, v in sorted(parts.items(), key=lambda kv: -kv[1])))
+        for clock in ("cpu", "wall"):
+            parts = r.get(f"{clock}_parts_per_iteration") or {}
+            if parts:
+                print(f"  {clock}/it {r['method']}: " + " ".join(
+                    f"{k.strip('_')} {v:.3f}"
+                    for k, v in sorted(parts.items(), key=lambda kv: -kv[1])))
 
 
 def converge_size(size: str, args: argparse.Namespace) -> list[dict]:
     """Every method on the warm-started frame of ``size`` to ``--to-tolerance``."""
-    scene = frame_scene(size, args.increment)
+    scene = frame_scene(size, args.increment, args.threads)
     ref, x_ref = cached_direct(scene, size, args)
     rows = [ref]
     for method in (m for m in args.methods if m != "direct"):
@@ -430,6 +450,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="solve each frame N times with the same solver; report the last")
     p.add_argument("--breakdown", action="store_true",
                    help="record process CPU time per part (evaluation, set-up parts, CG)")
+    p.add_argument("--threads", type=int, default=1,
+                   help="threads of the element kernels and of the multigrid level products "
+                        "(ShellParams.threads, MultigridOptions.threads); CPU time then "
+                        "exceeds wall time")
     p.add_argument("--quick", action="store_true", help="10k only")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)

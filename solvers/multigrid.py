@@ -98,6 +98,18 @@ reached (CG 1.1-1.2 s, evaluation 0.5 s, set-up 0.6 s per iteration). Tried and 
 keeping the coarse levels of an earlier Newton iteration while the shift is unchanged (the
 same 79 CG iterations, Galerkin products 0.21 -> 0.15 s per iteration, the whole iteration
 2.70 s against 2.39 s in the same run: within the run-to-run spread of the other parts).
+Session 7 (2026-11-26, another quiet 2-core machine; ``python benchmarks/iterative.py --sizes
+160k --hessian exact --to-tolerance 1e-8 --methods multigrid-phase-ew --repeat 2 --breakdown
+--threads T``): the same frame, 79 CG iterations, 6 Newton iterations, minimiser within 1.6e-11
+of the direct one (direct 11.4 s per iteration on this machine). Before this session's changes
+1.989 s per iteration on one core. The SBAIJ level products are now a numba pass over the
+upper blocks (:class:`_SymmetricCopy`, 4.75 ms at 160k against 5.7 ms for PETSc's SBAIJ
+``MatMult``; no ``MatSetValuesBlocked`` copy per set-up): 1.976 s on one thread (CG 0.89 s,
+evaluation 0.48 s, phase space 0.27 s, Galerkin products 0.18 s). With ``threads = 2`` (and
+``ShellParams.threads = 2`` for the element kernels, :mod:`models.shell.schedule`): 1.49 s
+wall (2.36 s CPU) per Newton iteration -- CG 0.68 s, evaluation 0.24 s wall; the level
+operator product 6.6 -> 4.3 ms, a V-cycle 45 -> 35 ms. The rest (the PETSc Galerkin products,
+``Z^T A Z``, the Chebyshev vector updates) stays on one core.
 
 Inexact Newton: with ``forcing = "eisenstat_walker"`` the CG tolerance of Newton iteration k is
 Eisenstat & Walker's choice 2 (SIAM J. Sci. Comput. 17, 1996, eq. 2.6 with the safeguard of
@@ -118,6 +130,7 @@ import scipy.sparse as sp
 from models.backend import PETSc
 from models.embedding.subdivision import Subdivision, SubdivisionOptions, subdivide
 from models.errors import InputError
+from models.shell.schedule import balanced_cuts, check_threads
 from solvers.linear import FactorReport
 from solvers.phase_space import (
     DeflatedPreconditioner,
@@ -172,9 +185,11 @@ class MultigridOptions:
             :meth:`MultigridLinearSystem.reset_forcing`), later set-ups keep the bounds and
             only refresh the Jacobi diagonal. "solve" needs ``smoother_pc = "jacobi"``.
         level_format: Storage of the level matrices ``A_l`` (l >= 1) in the CG and smoother
-            products: "aij" (the Galerkin products themselves) or "sbaij" (a symmetric 3 x 3
-            block copy made at every set-up: the upper triangle only, about 40 % of the AIJ
-            bytes per product, which is memory-bound). The Galerkin products stay AIJ.
+            products: "aij" (the Galerkin products themselves, PETSc ``MatMult``) or "sbaij"
+            (a symmetric 3 x 3 block copy refreshed at every set-up: the upper triangle only,
+            about 40 % of the AIJ bytes per product, which is memory-bound; multiplied by
+            :class:`_SymmetricCopy`'s numba kernel on ``threads`` threads). The Galerkin
+            products stay AIJ.
         target_fraction: When > 0 (and the Newton solver passes its gradient tolerance
             ``tol``), the CG tolerance of an iteration is at least
             ``min(ew_max, target_fraction tol / ||g_k||)``: the last Newton step is solved
@@ -193,6 +208,11 @@ class MultigridOptions:
             minimum, W 0.07874 against 0.07941 (another sequence of shifted steps).
         phase_level: Hierarchy level whose vertex hats modulate the test fields (0 = the
             coarse mesh; ``3 n_level`` columns).
+        threads: Threads (numba ``prange``) of the level products with ``level_format =
+            "sbaij"`` and of the penalty products (>= 1; the rest of CG stays on one). 1
+            never starts a thread pool; keep 1 under MPI (one core per rank). With more, the
+            OpenMP threads spin between products (``OMP_WAIT_POLICY=passive`` stops that at
+            ~10 % more wall time).
 
     """
 
@@ -212,8 +232,10 @@ class MultigridOptions:
     target_fraction: float = 0.0
     phase_space: bool = False
     phase_level: int = 0
+    threads: int = 1
 
     def __post_init__(self) -> None:
+        check_threads(self.threads, "MultigridOptions.threads")
         if self.phase_level < 0:
             raise InputError(f"MultigridOptions.phase_level: must be >= 0, got "
                              f"{self.phase_level!r}")
@@ -323,25 +345,25 @@ class _LowRankOperator:
     """``MatPython`` context of ``A + G^T G`` (A a PETSc matrix, G the penalty factor).
 
     ``y = A x + G^T (G x)``: ``MatMult`` with A, then the penalty. When ``G = H (x) I_3``
-    (every level's factor is: ``G_l = (H S) (x) I_3``) the penalty is one numba pass over
-    the vertex-level H for all three coordinates (:func:`_add_low_rank`), 2.2 ms at 160k
-    against 3.9 ms for ``MatMult`` and ``MatMultTransposeAdd`` with the AIJ G (three times
-    the entries); any other G takes that PETSc path. No allocation per call.
+    (every level's factor is: ``G_l = (H S) (x) I_3``) the penalty is two numba passes over
+    the vertex-level H and its transpose for all three coordinates (:class:`_VertexPenalty`,
+    ``threads`` row ranges each), 2.2 ms at 160k on one thread against 3.9 ms for
+    ``MatMult`` and ``MatMultTransposeAdd`` with the AIJ G (three times the entries); any
+    other G takes that PETSc path. No allocation per call.
     """
 
-    def __init__(self, a: Any, g: sp.csr_matrix | None) -> None:
+    def __init__(self, a: Any, g: sp.csr_matrix | None, threads: int = 1) -> None:
         self.a = a
-        self.vertex = None if g is None else _vertex_factor(g)
+        self.vertex = None if g is None else _VertexPenalty.of(g, threads)
         self.g = None if g is None or self.vertex is not None else petsc_aij(g)
         self.gx = None if self.g is None else self.g.createVecs()[1]
-        self.work = np.zeros(0 if g is None else g.shape[0])
         self.g_diagonal = 0.0 if g is None else np.asarray(g.multiply(g).sum(axis=0)).ravel()
 
     def mult(self, mat: Any, x: Any, y: Any) -> None:  # noqa: ARG002 (petsc4py signature)
         """``y = A x + G^T (G x)`` (``A x`` without a penalty)."""
         self.a.mult(x, y)
         if self.vertex is not None:
-            _add_low_rank(*self.vertex, x.getArray(readonly=True), y.getArray(), self.work)
+            self.vertex.add(x.getArray(readonly=True), y.getArray())
         elif self.g is not None:
             self.g.mult(x, self.gx)
             self.g.multTransposeAdd(self.gx, y, y)
@@ -352,8 +374,44 @@ class _LowRankOperator:
         d.getArray()[:] += self.g_diagonal
 
 
-def _vertex_factor(g: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """CSR arrays of H when ``g = H (x) I_3`` exactly, else None."""
+@dataclass(eq=False)
+class _VertexPenalty:
+    """``y += G^T (G x)`` for ``G = H (x) I_3`` in two passes over the vertex-level H.
+
+    ``w = H x`` by cluster rows, then ``y += H^T w`` by vertex rows (race-free row ranges,
+    one per thread; numba ``prange``).
+    """
+
+    h: tuple[np.ndarray, np.ndarray, np.ndarray]
+    ht: tuple[np.ndarray, np.ndarray, np.ndarray]
+    h_cuts: np.ndarray
+    ht_cuts: np.ndarray
+    work: np.ndarray
+
+    @classmethod
+    def of(cls, g: sp.csr_matrix, threads: int) -> _VertexPenalty | None:
+        """Return the vertex-level form of ``g``, or None when ``g`` is not ``H (x) I_3``."""
+        h = _vertex_factor(g)
+        if h is None:
+            return None
+        ht = sp.csr_matrix(h.T)
+        ht.sort_indices()
+        arrays = tuple((m.indptr.astype(np.int64), m.indices.astype(np.int64),
+                        m.data.astype(np.float64)) for m in (h, ht))
+        return cls(arrays[0], arrays[1], balanced_cuts(arrays[0][0], threads),
+                   balanced_cuts(arrays[1][0], threads), np.zeros(3 * h.shape[0]))
+
+    def add(self, x: np.ndarray, y: np.ndarray) -> None:
+        """``y += G^T (G x)`` in place (one thread: no numba thread pool at all)."""
+        if self.h_cuts.size == 2:
+            _vertex_rows(0, self.h_cuts[-1], *self.h, x, self.work, False)
+            _vertex_rows(0, self.ht_cuts[-1], *self.ht, self.work, y, True)
+        else:
+            _vertex_penalty(*self.h, *self.ht, self.h_cuts, self.ht_cuts, x, self.work, y)
+
+
+def _vertex_factor(g: sp.csr_matrix) -> sp.csr_matrix | None:
+    """H (CSR, sorted) when ``g = H (x) I_3`` exactly, else None."""
     g = sp.csr_matrix(g)
     if g.shape[0] % 3 or g.shape[1] % 3:
         return None
@@ -361,28 +419,38 @@ def _vertex_factor(g: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray
     h.sort_indices()
     if g.nnz != 3 * h.nnz or (sp.kron(h, sp.identity(3), format="csr") != g).nnz:
         return None
-    return h.indptr.astype(np.int64), h.indices.astype(np.int64), h.data.astype(np.float64)
+    return h
+
+
+@numba.njit(cache=True, parallel=True)
+def _vertex_penalty(h_ptr: np.ndarray, h_idx: np.ndarray, h_val: np.ndarray, t_ptr: np.ndarray,
+                    t_idx: np.ndarray, t_val: np.ndarray, h_cuts: np.ndarray,
+                    t_cuts: np.ndarray, x: np.ndarray, work: np.ndarray,
+                    y: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """``work = (H (x) I_3) x``, then ``y += (H^T (x) I_3) work``, each by row ranges."""
+    for t in numba.prange(h_cuts.size - 1):
+        _vertex_rows(h_cuts[t], h_cuts[t + 1], h_ptr, h_idx, h_val, x, work, False)
+    for t in numba.prange(t_cuts.size - 1):
+        _vertex_rows(t_cuts[t], t_cuts[t + 1], t_ptr, t_idx, t_val, work, y, True)
 
 
 @numba.njit(cache=True)
-def _add_low_rank(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, x: np.ndarray,
-                  y: np.ndarray, work: np.ndarray) -> None:  # pragma: no cover (compiled)
-    """``y += G^T (G x)`` for ``G = H (x) I_3`` (H in CSR; ``work``: ``G x``, 3 per row)."""
-    for c in range(indptr.size - 1):
+def _vertex_rows(lo: int, hi: int, indptr: np.ndarray, indices: np.ndarray, data: np.ndarray,
+                 x: np.ndarray, y: np.ndarray, add: bool) -> None:  # pragma: no cover (compiled)
+    """Rows ``lo .. hi`` of ``y = (M (x) I_3) x`` (``add``: ``y +=``), M in CSR."""
+    for c in range(lo, hi):
         a0 = a1 = a2 = 0.0
         for k in range(indptr[c], indptr[c + 1]):
             v, w = 3 * indices[k], data[k]
             a0 += w * x[v]
             a1 += w * x[v + 1]
             a2 += w * x[v + 2]
-        work[3 * c], work[3 * c + 1], work[3 * c + 2] = a0, a1, a2
-    for c in range(indptr.size - 1):
-        a0, a1, a2 = work[3 * c], work[3 * c + 1], work[3 * c + 2]
-        for k in range(indptr[c], indptr[c + 1]):
-            v, w = 3 * indices[k], data[k]
-            y[v] += w * a0
-            y[v + 1] += w * a1
-            y[v + 2] += w * a2
+        if add:
+            y[3 * c] += a0
+            y[3 * c + 1] += a1
+            y[3 * c + 2] += a2
+        else:
+            y[3 * c], y[3 * c + 1], y[3 * c + 2] = a0, a1, a2
 
 
 class _Jacobi:
@@ -459,41 +527,107 @@ def _upper_blocks(indptr: np.ndarray, indices: np.ndarray
 
 
 class _SymmetricCopy:
-    """A symmetric 3 x 3 block (SBAIJ) copy of an AIJ level matrix, refreshed in place.
+    """A symmetric 3 x 3 block copy (upper block triangle) of an AIJ level matrix.
 
     The positions of the upper block triangle's entries in the AIJ values are found once
-    (the Galerkin patterns are fixed); :meth:`refresh` gathers the current values and sets
-    them block-row-wise into the same SBAIJ matrix: at 160k vertices 0.08 s for the fine
-    level, against 0.2 s for a copy and ``MatConvert`` (benchmarks/iterative.py).
+    (the Galerkin patterns are fixed); :meth:`refresh` gathers the current values. The
+    product (:meth:`mult`) is a numba pass over the upper blocks adding each block and its
+    transpose (:func:`_symmetric_rows`), about 40 % of the AIJ bytes: at 160k vertices
+    4.75 ms against 5.7 ms for PETSc's SBAIJ ``MatMult`` and 12.2 ms for the AIJ one. With
+    ``threads > 1`` the block rows are split into equal-work ranges, each thread adding into
+    its own vector (the transposed blocks reach any row), summed and re-zeroed afterwards by
+    row ranges (:func:`_symmetric_parallel`): 3.2-3.6 ms on two threads (quiet 2-core
+    machine, 2026-11-26; a Python thread pool instead of ``prange`` lost most of that to
+    GIL hand-offs: 4 ms per product).
 
     Args:
         source: The AIJ matrix.
         values: The source's value array itself when the caller owns it (the fine
             :class:`FineMatrix`): read in place instead of through ``MatGetValuesCSR``, which
             allocates a fresh copy of the whole CSR (225 MB at 160k) at every refresh.
+        threads: Threads of the product (>= 1).
 
     """
 
-    def __init__(self, source: Any, values: np.ndarray | None = None) -> None:
+    def __init__(self, source: Any, values: np.ndarray | None = None, threads: int = 1) -> None:
         indptr, indices, source_values = source.getValuesCSR()
-        self.positions, self.slots, bptr, bidx = _upper_blocks(indptr, indices)
-        self.bptr, self.bidx = bptr.astype(PETSc.IntType), bidx.astype(PETSc.IntType)
-        self.values = np.zeros(9 * bidx.size)
+        self.positions, self.slots, self.bptr, self.bidx = _upper_blocks(indptr, indices)
+        if np.any(self.bidx[self.bptr[:-1]] != np.arange(self.bptr.size - 1)):
+            raise InputError("MultigridLinearSystem: a level matrix lacks a diagonal block")
+        self.values = np.zeros(9 * self.bidx.size)
         self.source, self.source_values = source, values
         self.values[self.slots] = source_values[self.positions]
-        csr: Any = (self.bptr, self.bidx, self.values)
-        mat: Any = PETSc.Mat().createSBAIJ(source.getSize(), 3, csr=csr, comm=PETSc.COMM_SELF)
-        mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-        mat.assemble()
-        self.mat = mat
+        self.diagonal = (9 * self.bptr[:-1, None] + np.array([0, 4, 8])).ravel()
+        self.cuts = balanced_cuts(self.bptr, threads)
+        self.buffers = np.zeros((threads if threads > 1 else 0, 3 * (self.bptr.size - 1)))
+        self.sum_cuts = balanced_cuts(np.arange(3 * self.bptr.size - 2), threads)
 
     def refresh(self) -> None:
-        """Copy the source's current values (same pattern) into the SBAIJ matrix."""
+        """Copy the source's current values (same pattern)."""
         values = self.source_values if self.source_values is not None \
             else self.source.getValuesCSR()[2]
         self.values[self.slots] = values[self.positions]
-        self.mat.setValuesBlockedCSR(self.bptr, self.bidx, self.values)
-        self.mat.assemble()
+
+    def mult(self, x: Any, y: Any) -> None:
+        """``y = A x`` (PETSc vectors, ``Mat.mult`` signature)."""
+        xa, ya = x.getArray(readonly=True), y.getArray()
+        if not self.buffers.size:
+            ya[:] = 0.0
+            _symmetric_rows(0, self.bptr.size - 1, self.bptr, self.bidx, self.values, xa, ya)
+        else:
+            _symmetric_parallel(self.cuts, self.sum_cuts, self.bptr, self.bidx, self.values, xa,
+                                self.buffers, ya)
+
+    def getDiagonal(self, d: Any) -> None:  # noqa: N802 (petsc4py name)
+        """``d = diag(A)``."""
+        d.getArray()[:] = self.values[self.diagonal]
+
+
+@numba.njit(cache=True, parallel=True)
+def _symmetric_parallel(cuts: np.ndarray, sum_cuts: np.ndarray, bptr: np.ndarray,
+                        bidx: np.ndarray, values: np.ndarray, x: np.ndarray,
+                        buffers: np.ndarray, y: np.ndarray) -> None:  # pragma: no cover
+    """``y = A x``: block-row range t adds into ``buffers[t]``, then the rows are summed."""
+    for t in numba.prange(cuts.size - 1):
+        _symmetric_rows(cuts[t], cuts[t + 1], bptr, bidx, values, x, buffers[t])
+    for t in numba.prange(sum_cuts.size - 1):
+        _sum_rows(sum_cuts[t], sum_cuts[t + 1], buffers, y)
+
+
+@numba.njit(cache=True)
+def _symmetric_rows(lo: int, hi: int, bptr: np.ndarray, bidx: np.ndarray, values: np.ndarray,
+                    x: np.ndarray, y: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """``y += (U_r + U_r^T - D_r) x`` for the upper blocks U_r of block rows ``lo .. hi``.
+
+    ``y`` must be zeroed by the caller; ``values`` holds 9 row-major entries per block.
+    """
+    for i in range(lo, hi):
+        x0, x1, x2 = x[3 * i], x[3 * i + 1], x[3 * i + 2]
+        a0 = a1 = a2 = 0.0
+        for k in range(bptr[i], bptr[i + 1]):
+            j, o = bidx[k], 9 * k
+            u0, u1, u2 = x[3 * j], x[3 * j + 1], x[3 * j + 2]
+            a0 += values[o] * u0 + values[o + 1] * u1 + values[o + 2] * u2
+            a1 += values[o + 3] * u0 + values[o + 4] * u1 + values[o + 5] * u2
+            a2 += values[o + 6] * u0 + values[o + 7] * u1 + values[o + 8] * u2
+            if j != i:
+                y[3 * j] += values[o] * x0 + values[o + 3] * x1 + values[o + 6] * x2
+                y[3 * j + 1] += values[o + 1] * x0 + values[o + 4] * x1 + values[o + 7] * x2
+                y[3 * j + 2] += values[o + 2] * x0 + values[o + 5] * x1 + values[o + 8] * x2
+        y[3 * i] += a0
+        y[3 * i + 1] += a1
+        y[3 * i + 2] += a2
+
+
+@numba.njit(cache=True)
+def _sum_rows(lo: int, hi: int, buffers: np.ndarray, y: np.ndarray) -> None:  # pragma: no cover
+    """``y[lo:hi] = sum_t buffers[t, lo:hi]``, then zero those buffer entries."""
+    for i in range(lo, hi):
+        total = 0.0
+        for t in range(buffers.shape[0]):
+            total += buffers[t, i]
+            buffers[t, i] = 0.0
+        y[i] = total
 
 
 def _python_operator(product: _LowRankOperator) -> Any:
@@ -811,11 +945,12 @@ class MultigridLinearSystem:
             # converting A_l itself breaks the reused MatPtAP (PETSc 3.25: a segfault when
             # A_l is a PtAP result, a wrong next product when it is the fine matrix): copy
             assert self._fine is not None  # set by factorize (internal invariant)
-            self._sbaij = [*(_SymmetricCopy(a) for a in self._galerkin[1:-1]),
-                           _SymmetricCopy(self._fine.mat, self._fine.values)]
+            threads = self.options.threads
+            self._sbaij = [*(_SymmetricCopy(a, threads=threads) for a in self._galerkin[1:-1]),
+                           _SymmetricCopy(self._fine.mat, self._fine.values, threads)]
         for product, copy in zip(self._products, self._sbaij, strict=True):
             copy.refresh()
-            product.a = copy.mat
+            product.a = copy
 
     def _level_operators(self) -> list[Any]:
         """Per level (coarse to fine): the assembled coarse matrix, then ``A_l + G_l^T G_l``.
@@ -824,7 +959,7 @@ class MultigridLinearSystem:
         when new eigenvalue bounds are due (``eigen_estimate``) and whose product matrix is
         swapped for the SBAIJ copy (``level_format``).
         """
-        self._products = [_LowRankOperator(a, g)
+        self._products = [_LowRankOperator(a, g, self.options.threads)
                           for a, g in zip(self._galerkin[1:], self._g_levels[1:], strict=True)]
         return [self._coarse, *(_python_operator(p) for p in self._products)]
 

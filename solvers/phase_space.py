@@ -76,6 +76,10 @@ Measured (2026-11-25, quiet machine):
   frame's first iteration), and a retry with another shift of the same evaluation adds
   ``(tau - tau') Z^T Z`` instead of recomputing ``Z^T A Z`` (``A Z`` alone is 0.17 s);
 * one application: V-cycle 83 ms, A-DEF2 86 ms, a product with A 11 ms, Q 5.5 ms;
+* 2026-11-26 (session 7, another quiet 2-core machine; Gauss-Newton matrix of the frame's
+  start): V-cycle 45 ms, A-DEF2 58 ms, a product with A 6.6 ms on one thread; 35 / 46 /
+  4.3 ms with ``MultigridOptions.threads = 2``. The whole frame with ``--threads 2``: 1.49 s
+  wall per Newton iteration (1.98 s on one thread; :mod:`solvers.multigrid`);
 * tests/test_phase_space.py, a 2401-vertex wrinkled plate: 78 -> 49 CG iterations.
 """
 

@@ -37,6 +37,7 @@ def _args() -> argparse.Namespace:
     parser.add_argument("--cells", type=int, default=12)
     parser.add_argument("--compression", type=float, default=0.07)
     parser.add_argument("--patches-per-rank", type=int, default=1)
+    parser.add_argument("--max-outer", type=int, default=500)
     return parser.parse_args()
 
 
@@ -95,7 +96,8 @@ def _run(args: argparse.Namespace, comm: MPI.Comm) -> dict[str, float]:
                 "time_factorize": rep.time_factorize, "time_total": rep.time_total}
     else:
         fail = int(os.environ.get("DECOMP_FAIL_PATCH", "-1"))
-        block = BlockOptions(method=args.method, rtol=1e-8, gradient_scale=g0, fail_patch=fail)
+        block = BlockOptions(method=args.method, rtol=1e-8, gradient_scale=g0, fail_patch=fail,
+                             max_outer=args.max_outer)
         res = parallel_block_solve(problem, partition, x0, ParallelOptions(
             exchange=args.exchange, patches_per_rank=args.patches_per_rank, block=block), comm)
         x, rep_b = res.x, res.report

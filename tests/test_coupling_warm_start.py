@@ -38,6 +38,8 @@ COARSE = ("--frames", "2", "--set", "body.dt=0.5", "--set", "shell.subdivision.l
 TWO_WAY_SCENE = REPO / "scenes" / "two_way_bar.toml"
 """scenes/default.toml with two-way implicit coupling (max_iterations 100)."""
 COUPLING_IT = 100
+CAP = 8
+"""Coupling iterations of the "capped" run: far from converged (the frames need 38-61)."""
 """Coupling iterations allowed on the coarse two-way run (Anderson needs 36 and ~58, measured)."""
 
 
@@ -128,10 +130,11 @@ def default_runs(tmp_path_factory) -> dict[str, Path]:
     """scenes/default.toml on the coarse settings, one-way and two-way implicit."""
     outs = {}
     default = REPO / "scenes" / "default.toml"
-    # a cap of 4 (change ~1e-1): with 2 (and, since the x5 / 2 shift schedule, 3) the
-    # unconverged body hands the shell a target on which a hinge folds flat (dihedral angle
-    # pi, where the bending energy jumps) and the shell solve stops with a named error
-    capped = ("--set", "shell.coupling.max_iterations=4")
+    # a cap of 8 (changes 7e-2 / 3e-2): with 2, 3 and (on the AMD machine of 2026-11-26) 4
+    # the unconverged body hands the shell a target on which a hinge folds flat (dihedral
+    # angle pi, where the bending energy jumps) and the shell solve stops with a named error;
+    # caps 5 to 20 all ran there (changes 1e-1 .. 1e-4), 8 keeps a margin on both sides
+    capped = ("--set", f"shell.coupling.max_iterations={CAP}")
     for mode, scene, extra in (("one_way", default, ()), ("two_way", TWO_WAY_SCENE, ()),
                                ("capped", TWO_WAY_SCENE, capped)):
         out = tmp_path_factory.mktemp(mode) / "out"
@@ -211,7 +214,7 @@ def test_unconverged_coupling_is_flagged(default_runs):
             assert f"coupling={d['coupling_iterations']}" in line
             assert ("NOT converged" in line) is not converged
         if not converged:
-            assert [r["details"]["coupling_iterations"] for r in recs] == [4, 4]
+            assert [r["details"]["coupling_iterations"] for r in recs] == [CAP, CAP]
     assert "coupling" not in (default_runs["one_way"] / "progress.txt").read_text()
 
 

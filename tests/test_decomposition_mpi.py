@@ -20,7 +20,9 @@ def _result(proc) -> dict:
 @pytest.mark.parametrize(("exchange", "method", "extra"), [
     ("neighbour", "gauss_seidel", []),
     ("client_server", "gauss_seidel", []),
-    ("neighbour", "jacobi", ["--patches-per-rank", "2"]),
+    # block Jacobi on 4 patches converges slowly: 592 outer iterations on the machine of
+    # 2026-11-26 (under the default 500 on earlier ones; the count follows round-off)
+    ("neighbour", "jacobi", ["--patches-per-rank", "2", "--max-outer", "1500"]),
     ("client_server", "jacobi", ["--compression", "0.005"]),
 ])
 def test_two_rank_block_solve_matches_monolithic(mpiexec, exchange, method, extra) -> None:

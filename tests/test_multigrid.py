@@ -16,8 +16,10 @@ from solvers.multigrid import (
     MultigridLinearSystem,
     MultigridOptions,
     ShellHierarchy,
+    _SymmetricCopy,
     eisenstat_walker,
 )
+from solvers.phase_space import petsc_aij
 from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver, ShellSolveReport
 
 
@@ -224,14 +226,16 @@ def test_eigen_estimate_once_per_solve_reuses_set_up() -> None:
     assert per_setup.stats.eigen_estimates == 3
 
 
-def test_sbaij_level_products_match_aij() -> None:
+@pytest.mark.parametrize("threads", [1, 2])
+def test_sbaij_level_products_match_aij(threads: int) -> None:
     hier = ShellHierarchy.build(*grid_plate(6, 6), levels=3)
     energy, x0 = compressed_plate(hier, clusters=32)
     ev = energy.evaluate(x0, hessian="gauss_newton")
     out = {}
     for fmt in ("aij", "sbaij"):
         mg = MultigridLinearSystem(hier.prolongations(),
-                                   MultigridOptions(rtol=1e-10, level_format=fmt))
+                                   MultigridOptions(rtol=1e-10, level_format=fmt,
+                                                    threads=threads))
         solve_once(mg, ev, tau=1.0)
         out[fmt] = (solve_once(mg, ev), mg)  # second set-up: Galerkin products reused
     (x_aij, mg_aij), (x_sb, mg_sb) = out["aij"], out["sbaij"]
@@ -240,7 +244,28 @@ def test_sbaij_level_products_match_aij() -> None:
           f"x_aij| / max |x_aij| = {gap:.1e}; true residual {mg_sb.stats.true_residuals}")
     assert mg_sb.stats.iterations == mg_aij.stats.iterations
     assert gap < 1e-10 and max(mg_sb.stats.true_residuals) <= 1e-10
-    assert all(p.a.getType() == "seqsbaij" for p in mg_sb._products)
+    assert all(isinstance(p.a, _SymmetricCopy) for p in mg_sb._products)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_symmetric_copy_product_and_diagonal_match_the_aij_matrix(threads: int) -> None:
+    """The upper-block product (one thread, or row ranges adding into private buffers)."""
+    rng = np.random.default_rng(3)
+    pattern = sp.random(40, 40, density=0.15, random_state=4) + sp.identity(40)
+    blocks = sp.kron(pattern, np.ones((3, 3)), format="csr")
+    blocks.data = rng.standard_normal(blocks.nnz)
+    sym = sp.csr_matrix(blocks + blocks.T)
+    sym.sort_indices()
+    source = petsc_aij(sym)
+    copy = _SymmetricCopy(source, threads=threads)
+    x, y = source.createVecs()
+    for _ in range(2):  # the buffers are zeroed again after each product
+        x.setArray(rng.standard_normal(120))
+        copy.mult(x, y)
+        assert np.allclose(y.getArray(), sym @ x.getArray(), rtol=0, atol=1e-12)
+    d = y.duplicate()
+    copy.getDiagonal(d)
+    assert np.array_equal(d.getArray(), sym.diagonal())
 
 
 def test_fast_options_keep_the_direct_newton_history(wrinkle) -> None:
@@ -292,10 +317,10 @@ def test_target_fraction_raises_the_last_cg_tolerance() -> None:
         MultigridOptions(eigen_estimate="solve", smoother_pc="sor")
 
 
-def test_low_rank_operator_vertex_kernel_matches_the_aij_product() -> None:
+@pytest.mark.parametrize("threads", [1, 2])
+def test_low_rank_operator_vertex_kernel_matches_the_aij_product(threads: int) -> None:
     """``A x + G^T G x`` by the vertex-level kernel (``G = H (x) I_3``) and by PETSc AIJ."""
     from solvers.multigrid import _LowRankOperator, _python_operator
-    from solvers.phase_space import petsc_aij
 
     rng = np.random.default_rng(4)
     n, c = 40, 7
@@ -307,7 +332,7 @@ def test_low_rank_operator_vertex_kernel_matches_the_aij_product() -> None:
     other[1, 3] = 0.5  # not H (x) I_3: the PETSc path
     x = rng.standard_normal(3 * n)
     for g, vertex in ((kron, True), (other.tocsr(), False)):
-        op = _LowRankOperator(petsc_aij(a), g)
+        op = _LowRankOperator(petsc_aij(a), g, threads)
         assert (op.vertex is not None) == vertex
         mat = _python_operator(op)
         xv, yv = mat.createVecs()

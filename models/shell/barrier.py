@@ -62,6 +62,7 @@ from models.shell.assembly import (
 )
 from models.shell.membrane import _cyclic_sign, _skew_entry
 from models.shell.rest import face_normals, squared_edges
+from models.shell.schedule import StencilSchedule
 
 
 def check_activation(s_hat: float, name: str = "flip_activation") -> None:
@@ -77,21 +78,23 @@ def _barrier(s: float, s_hat: float) -> tuple[float, float, float]:  # pragma: n
     return -t * t * lg, -2.0 * t * lg - t * t / s, -2.0 * lg - 4.0 * t / s + t * t / (s * s)
 
 
-@numba.njit(cache=True, fastmath=False)
-def _flip_kernel(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, weight: np.ndarray,
-                 ref: np.ndarray, s_hat: float, stiffness: float, order: int, keep_curv: bool,
-                 vals: np.ndarray, grad: np.ndarray, blocks: np.ndarray, fused: bool,
-                 data: np.ndarray, base: np.ndarray,
-                 row_len: np.ndarray) -> None:  # pragma: no cover - numba
-    """Fused value / gradient / 9x9 Hessian of ``stiffness w b(s)`` per face.
+@numba.njit(cache=True, fastmath=False, nogil=True)
+def _flip_kernel(index: np.ndarray, x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray,
+                 weight: np.ndarray, ref: np.ndarray, s_hat: float, stiffness: float,
+                 order: int, keep_curv: bool, vals: np.ndarray, grad: np.ndarray,
+                 blocks: np.ndarray, fused: bool, data: np.ndarray, base: np.ndarray,
+                 row_len: np.ndarray) -> float:  # pragma: no cover - numba
+    """Fused value / gradient / 9x9 Hessian of ``stiffness w b(s)`` per face ``index``.
 
     With ``fused`` only the active faces' blocks are added straight into ``data``
     (:class:`HessianSink`); otherwise every face's block is written (zero when inactive).
+    Returns 0 (the value is the sum of ``vals``).
     """
     d = np.empty((3, 3))
     gs = np.empty((3, 3))
     scratch = np.empty((9, 9))
-    for f in range(faces.shape[0]):
+    for ii in range(index.size):
+        f = index[ii]
         for a in range(3):
             b, c = faces[f, (a + 1) % 3], faces[f, (a + 2) % 3]
             for k in range(3):
@@ -135,6 +138,7 @@ def _flip_kernel(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, weight
                             + cc * sgn * _skew_entry(r0, r1, r2, p, q))
         if fused:
             scatter_block(data, faces[f], base[f], row_len, scratch, 1.0)
+    return 0.0
 
 
 def signed_area_ratio(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray,
@@ -171,7 +175,8 @@ def barrier_weights(x_rest: np.ndarray, faces: np.ndarray) -> np.ndarray:
 def flip_barrier(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, weight: np.ndarray,
                  ref: np.ndarray, *,
                  s_hat: float = 0.1, order: int = 2, hessian_mode: HessianMode = "exact",
-                 stiffness: float = 1.0, sink: HessianSink | None = None) -> TermEval:
+                 stiffness: float = 1.0, sink: HessianSink | None = None,
+                 schedule: StencilSchedule | None = None) -> TermEval:
     """Flip barrier ``stiffness * sum_f A0_f b(s_f)`` (module docstring).
 
     Args:
@@ -188,6 +193,8 @@ def flip_barrier(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, weight
         sink: If given (order 2, not "projected"), the active faces' 9x9 blocks are added
             straight into ``sink.data`` (:class:`models.shell.assembly.HessianSink`) and
             ``blocks`` is None: no (F, 9, 9) array is written (207 MB at 160k vertices).
+        schedule: Thread split of the faces (:mod:`models.shell.schedule`; default one
+            thread, in order).
 
     Returns:
         TermEval with per-face energies in ``element_values``; the value is +inf (and that
@@ -203,9 +210,11 @@ def flip_barrier(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, weight
     fused, data, base, row_len = HessianSink.unpacked(use_sink, 3)
     vals, grad = np.empty(m), np.zeros(3 * x.shape[0] if order >= 1 else 0)
     blocks = np.empty((m, 9, 9) if order >= 2 and not fused else (0, 9, 9))
-    _flip_kernel(x, faces, rest_area, weight, np.ascontiguousarray(ref, dtype=np.float64),
-                 float(s_hat), float(stiffness), order, hessian_mode != "gauss_newton",
-                 vals, grad, blocks, fused, data, base, row_len)
+    r, keep = np.ascontiguousarray(ref, dtype=np.float64), hessian_mode != "gauss_newton"
+    (schedule or StencilSchedule.serial(m)).run(
+        lambda index: _flip_kernel(index, x, faces, rest_area, weight, r, float(s_hat),
+                                   float(stiffness), order, keep, vals, grad, blocks, fused,
+                                   data, base, row_len))
     active = np.flatnonzero(vals > 0.0)
     if order >= 2 and hessian_mode == "projected" and active.size:
         sub = np.ascontiguousarray(blocks[active])

@@ -67,6 +67,7 @@ from models.shell.hinge_angle import (
     check_hinge_arrays,
     hinge_angles,
 )
+from models.shell.schedule import StencilSchedule
 
 _MODE_CODE = {"exact": 0, "gauss_newton": 1, "projected": 0}
 _HINGE_Q = translation_complement(4)
@@ -100,22 +101,24 @@ def hinge_weights(x_rest: np.ndarray, hinges: np.ndarray) -> np.ndarray:
     return 3.0 * e2 / (a0 + a1)
 
 
-@njit(cache=True, error_model="numpy")
-def _bending_kernel(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights: np.ndarray,
-                    order: int, mode: int, grad: np.ndarray, blocks: np.ndarray,
-                    energies: np.ndarray, fused: bool, data: np.ndarray, base: np.ndarray,
-                    row_len: np.ndarray, project: bool,
+@njit(cache=True, error_model="numpy", nogil=True)
+def _bending_kernel(index: np.ndarray, x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray,
+                    weights: np.ndarray, order: int, mode: int, grad: np.ndarray,
+                    blocks: np.ndarray, energies: np.ndarray, fused: bool, data: np.ndarray,
+                    base: np.ndarray, row_len: np.ndarray, project: bool,
                     q: np.ndarray) -> float:  # pragma: no cover - numba
-    """Fused pass: per-hinge energy, gradient scatter and 12x12 block (mode 0 exact, 1 GN).
+    """Fused pass over the hinges ``index``: energy, gradient scatter and 12x12 block.
 
-    With ``fused`` the block is built in a scratch array, PSD-projected if ``project`` (reduced
-    clamp with basis ``q``) and added into ``data`` (:class:`HessianSink`) instead of stored.
+    Mode 0 exact, 1 Gauss-Newton. With ``fused`` the block is built in a scratch array,
+    PSD-projected if ``project`` (reduced clamp with basis ``q``) and added into ``data``
+    (:class:`HessianSink`) instead of stored. Returns the energy of those hinges.
     """
     g = np.empty(12)
     scratch3 = np.empty((1, 12, 12))
     scratch = scratch3[0]
     total = 0.0
-    for h in range(hinges.shape[0]):
+    for ii in range(index.size):
+        h = index[ii]
         hb = blocks[h] if (order >= 2 and not fused) else scratch
         if order == 0:
             theta = _theta_one(x, hinges[h])
@@ -160,7 +163,8 @@ def _check_rest(hinges: np.ndarray, theta0: np.ndarray, weights: np.ndarray) -> 
 
 def hinge_bending(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights: np.ndarray,
                   *, order: int = 2, hessian_mode: HessianMode = "exact",
-                  sink: HessianSink | None = None) -> TermEval:
+                  sink: HessianSink | None = None,
+                  schedule: StencilSchedule | None = None) -> TermEval:
     """Hinge bending energy ``W_B = sum_h w_h (theta_h - theta0_h)^2`` and its derivatives.
 
     One fused numba pass computes, per hinge, the angle, its exact gradient and (order 2)
@@ -178,6 +182,8 @@ def hinge_bending(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights
             "projected" (exact block with negative eigenvalues clamped to 0).
         sink: If given (order 2), each block is added straight into ``sink.data`` (fused
             assembly, :class:`models.shell.assembly.HessianSink`) and ``blocks`` is None.
+        schedule: Thread split of the hinges (:mod:`models.shell.schedule`; default one
+            thread, in order).
 
     Returns:
         TermEval with ``value``, ``grad`` (3 n,), ``blocks`` (Hn, 12, 12) and
@@ -194,9 +200,11 @@ def hinge_bending(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights
     fused, data, base, row_len = HessianSink.unpacked(sink if order >= 2 else None, 4)
     blocks = np.empty((hinges.shape[0] if order >= 2 and not fused else 0, 12, 12))
     energies = np.empty(hinges.shape[0])
-    value = _bending_kernel(np.ascontiguousarray(x), hinges, theta0, weights, order,
-                            _MODE_CODE[hessian_mode], grad, blocks, energies, fused, data,
-                            base, row_len, hessian_mode == "projected", _HINGE_Q)
+    xc, mode = np.ascontiguousarray(x), _MODE_CODE[hessian_mode]
+    value = (schedule or StencilSchedule.serial(hinges.shape[0])).run(
+        lambda index: _bending_kernel(index, xc, hinges, theta0, weights, order, mode, grad,
+                                      blocks, energies, fused, data, base, row_len,
+                                      hessian_mode == "projected", _HINGE_Q))
     if not np.isfinite(value):
         if not np.all(np.isfinite(x)):
             raise InputError("x: non-finite coordinate")

@@ -52,6 +52,7 @@ from models.shell.dofs import check_positions
 from models.shell.membrane import area_membrane, edge_membrane
 from models.shell.penalty import PenaltyOperator, penalty_factor, penalty_gram, penalty_term
 from models.shell.rest import RestState, face_quality
+from models.shell.schedule import StencilSchedule, check_threads, vertex_parts
 from models.shell.topology import ShellTopology
 
 PenaltyHessian = Literal["assembled", "low_rank"]
@@ -88,6 +89,9 @@ class ShellParams:
         hessian_mode: "exact", "gauss_newton" or "projected" local Hessians.
         penalty_hessian: "assembled" (H^T H merged into the pattern) or "low_rank" (the factor
             G is returned instead and the assembled Hessian excludes the penalty).
+        threads: Threads of the element kernels (>= 1; :mod:`models.shell.schedule`). 1
+            (the default) is the plain loop; more split the stencils into bands of the mesh
+            (results equal up to round-off). Keep 1 under MPI (one core per rank).
 
     """
 
@@ -100,6 +104,7 @@ class ShellParams:
     flip_quality: float = 1.0
     hessian_mode: HessianMode = "exact"
     penalty_hessian: PenaltyHessian = "assembled"
+    threads: int = 1
 
     def __post_init__(self) -> None:
         """Validate stiffnesses (finite, >= 0) and option names."""
@@ -111,6 +116,7 @@ class ShellParams:
         if not (np.isfinite(self.flip_quality) and 0.0 <= self.flip_quality <= 1.0):
             raise InputError(f"flip_quality: must be in [0, 1], got {self.flip_quality!r}")
         check_hessian_mode(self.hessian_mode)
+        check_threads(self.threads, "threads")
         if self.penalty_hessian not in ("assembled", "low_rank"):
             raise InputError(f"penalty_hessian: expected 'assembled' or 'low_rank', "
                              f"got {self.penalty_hessian!r}")
@@ -189,6 +195,8 @@ class ShellEnergy:
             list(stencils.values()), self.topology.n_vertices,
             extra=[gram] if gram is not None else [])
         self._maps: dict[str, ScatterMap] = dict(zip(stencils, self.pattern.maps, strict=True))
+        parts = vertex_parts(self.topology.edges, self.n_vertices, self.params.threads)
+        self._schedules = {name: StencilSchedule.build(st, parts) for name, st in stencils.items()}
         self._hess_base = (self.pattern.extra_data(0, gram, 2.0 * self.params.k_P)
                            if gram is not None else None)
         self._factor = (penalty_factor(self._penalty, self.params.k_P)
@@ -259,21 +267,24 @@ class ShellEnergy:
         if "membrane_edge" in self._maps:
             out["membrane_edge"] = edge_membrane(x, t.edges, r.rest_lengths, order=order,
                                                  hessian_mode=mode, stiffness=p.k_L,
-                                                 sink=self._sink("membrane_edge", data))
+                                                 sink=self._sink("membrane_edge", data),
+                                                 schedule=self._schedules["membrane_edge"])
         if "membrane_area" in self._maps:
             out["membrane_area"] = area_membrane(x, t.faces, r.rest_areas, order=order,
                                                  hessian_mode=mode, stiffness=p.k_A)
         if "bending" in self._maps:
             out["bending"] = hinge_bending(x, t.hinges, r.rest_angles, self._bend_weights,
                                            order=order, hessian_mode=mode,
-                                           sink=self._sink("bending", data))
+                                           sink=self._sink("bending", data),
+                                           schedule=self._schedules["bending"])
         if "flip_barrier" in self._maps:
             k = self._flip
             out["flip_barrier"] = flip_barrier(x, t.faces[k], r.rest_areas[k], self._flip_weights,
                                                self._ref_normals[k],
                                                s_hat=p.flip_activation, order=order,
                                                hessian_mode=mode, stiffness=p.k_F,
-                                               sink=self._sink("flip_barrier", data))
+                                               sink=self._sink("flip_barrier", data),
+                                               schedule=self._schedules["flip_barrier"])
         if self._penalty is not None:
             out["penalty"] = penalty_term(x, self._target, self._penalty, order=min(order, 1),
                                           stiffness=p.k_P)

@@ -50,23 +50,26 @@ from models.shell.assembly import (
     project_psd_blocks,
     scatter_block,
 )
+from models.shell.schedule import StencilSchedule
 
 _FLOOR = 1e-12
 """Current length / doubled area below ``_FLOOR`` times the rest value is clamped to it, so a
 collapsed edge or face yields large but finite derivatives (never inf/NaN)."""
 
 
-@numba.njit(cache=True, fastmath=False)
-def _edge_kernel(x: np.ndarray, edges: np.ndarray, rest_len: np.ndarray, stiffness: float,
-                 order: int, clamp: bool, vals: np.ndarray, grad: np.ndarray,
+@numba.njit(cache=True, fastmath=False, nogil=True)
+def _edge_kernel(index: np.ndarray, x: np.ndarray, edges: np.ndarray, rest_len: np.ndarray,
+                 stiffness: float, order: int, clamp: bool, vals: np.ndarray, grad: np.ndarray,
                  blocks: np.ndarray, fused: bool, data: np.ndarray, base: np.ndarray,
-                 row_len: np.ndarray) -> None:  # pragma: no cover - numba
-    """Fused value / gradient / 6x6 Hessian of ``stiffness (l - l0)^2 / l0`` per edge.
+                 row_len: np.ndarray) -> float:  # pragma: no cover - numba
+    """Fused value / gradient / 6x6 Hessian of ``stiffness (l - l0)^2 / l0`` per edge ``index``.
 
-    With ``fused`` each block goes straight into ``data`` (:class:`HessianSink`).
+    With ``fused`` each block goes straight into ``data`` (:class:`HessianSink`). Returns 0
+    (the value is the sum of ``vals``).
     """
     scratch = np.empty((6, 6))
-    for e in range(edges.shape[0]):
+    for ii in range(index.size):
+        e = index[ii]
         i, j = edges[e, 0], edges[e, 1]
         l0 = rest_len[e]
         d0, d1, d2 = x[j, 0] - x[i, 0], x[j, 1] - x[i, 1], x[j, 2] - x[i, 2]
@@ -96,6 +99,7 @@ def _edge_kernel(x: np.ndarray, edges: np.ndarray, rest_len: np.ndarray, stiffne
                 kb[3 + p, q] = -kpq
         if fused:
             scatter_block(data, edges[e], base[e], row_len, scratch, 1.0)
+    return 0.0
 
 
 def _outputs(n_vertices: int, m: int, s: int, order: int,
@@ -116,7 +120,8 @@ def _term_eval(vals: np.ndarray, grad: np.ndarray, blocks: np.ndarray | None,
 
 def edge_membrane(x: np.ndarray, edges: np.ndarray, rest_len: np.ndarray, *, order: int = 2,
                   hessian_mode: HessianMode = "exact", stiffness: float = 1.0,
-                  sink: HessianSink | None = None) -> TermEval:
+                  sink: HessianSink | None = None,
+                  schedule: StencilSchedule | None = None) -> TermEval:
     """Edge-spring membrane energy ``stiffness * sum_e (l_e - l0_e)^2 / l0_e``.
 
     Args:
@@ -129,6 +134,8 @@ def edge_membrane(x: np.ndarray, edges: np.ndarray, rest_len: np.ndarray, *, ord
         stiffness: Factor k_L multiplying the energy and its derivatives.
         sink: If given (order 2), each 6x6 block is added straight into ``sink.data`` (fused
             assembly, :class:`models.shell.assembly.HessianSink`) and ``blocks`` is None.
+        schedule: Thread split of the edges (:mod:`models.shell.schedule`; default one
+            thread, in order).
 
     Returns:
         TermEval with per-edge energies in ``element_values``.
@@ -138,8 +145,10 @@ def edge_membrane(x: np.ndarray, edges: np.ndarray, rest_len: np.ndarray, *, ord
     check_hessian_mode(hessian_mode)
     fused, data, base, row_len = HessianSink.unpacked(sink if order >= 2 else None, 2)
     vals, grad, blocks = _outputs(x.shape[0], edges.shape[0], 2, order, keep_blocks=not fused)
-    _edge_kernel(x, edges, rest_len, float(stiffness), order, hessian_mode != "exact",
-                 vals, grad, blocks, fused, data, base, row_len)
+    k, clamp = float(stiffness), hessian_mode != "exact"
+    (schedule or StencilSchedule.serial(edges.shape[0])).run(
+        lambda index: _edge_kernel(index, x, edges, rest_len, k, order, clamp, vals, grad,
+                                   blocks, fused, data, base, row_len))
     return _term_eval(vals, grad, None if fused else blocks, order)
 
 

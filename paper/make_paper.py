@@ -10,8 +10,8 @@
    ``paper/scripts/{wavelength,artefacts}.py`` when present (``--run-external``: in quick mode
    too; ``--no-external``: never);
 2. reads the optional sources (``DIR/data/wavelength.json``, ``DIR/data/artefacts.json``,
-   ``benchmarks/results/{speed_accuracy,decomposition*,shell_kernels,shell_solve,scaling*}
-   .json``): each gives a Markdown table in ``DIR/tables/`` and a section of the paper, or
+   ``benchmarks/results/{speed_accuracy,decomposition*,shell_kernels,shell_solve,scaling*,
+   iterative_*conv*}.json``): each gives a Markdown table in ``DIR/tables/`` and a section of the paper, or
    the words "not run" and the command that produces it (``--strict``: an error);
 3. fills ``paper/paper.md.in``: ``{{source.key.path:format}}`` is a number read from the JSON
    of ``source`` (keys separated by dots, list indices as integers, ``format`` a Python format
@@ -250,6 +250,17 @@ SOURCES: tuple[Source, ...] = (
            ("size", "n", "clusters", "method", "setup_cpu", "setup.hierarchy.cpu",
             "setup.clusters.cpu", "setup.energy.cpu", "frames.1.cpu", "frames.1.wall",
             "frames.1.iterations", "frames.1.cg_iterations", "peak_mib", "load_end.0")),
+    Source("iterative", "Newton iterations of the warm-started wrinkled frame "
+           "(`--to-tolerance`; seconds per Newton iteration; t_iteration = wall, "
+           "cpu_iteration = process CPU; "
+           "energy_gap and max_vertex_diff against the direct solve)",
+           "benchmarks/results/iterative_*conv*.json",
+           "python benchmarks/iterative.py --sizes 160k --hessian exact --to-tolerance 1e-8 "
+           "--methods direct multigrid-phase-ew --repeat 2 --threads 2 --out "
+           "benchmarks/results/iterative_160k_conv_t2.json (and --threads 1, see its docstring)",
+           ("size", "n", "method", "threads", "iterations", "extra_iterations", "t_iteration",
+            "cpu_iteration", "cg_iterations", "energy_gap", "max_vertex_diff",
+            "true_residual_max", "peak_mib")),
 )
 
 

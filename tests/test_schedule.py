@@ -79,3 +79,22 @@ def test_bad_thread_counts_are_named(bad) -> None:
         ShellParams(threads=bad)
     with pytest.raises(InputError, match="MultigridOptions.threads"):
         MultigridOptions(threads=bad)
+
+
+def test_more_threads_than_vertices_and_disconnected_pieces() -> None:
+    """Extremes: 8 threads on two separate triangles (6 vertices); every stencil runs once."""
+    pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 0, 0], [6, 0, 0], [5, 1, 0]], float)
+    faces = np.array([[0, 1, 2], [3, 4, 5]])
+    topo = ShellTopology.from_faces(faces, len(pts))
+    parts = vertex_parts(topo.edges, topo.n_vertices, 8)
+    assert parts.min() >= 0 and parts.max() < 8
+    schedule = StencilSchedule.build(topo.edges, parts)
+    ran = np.concatenate([*schedule.chunks, schedule.interface])
+    assert np.array_equal(np.sort(ran), np.arange(len(topo.edges)))
+    rest = RestState.from_positions(topo, pts)
+    x = pts * 1.1
+    params = ShellParams(k_P=0.0)
+    one = ShellEnergy(topo, rest, params).evaluate(x)
+    eight = ShellEnergy(topo, rest, replace(params, threads=8)).evaluate(x)
+    assert eight.value == pytest.approx(one.value, rel=1e-14)
+    assert np.allclose(eight.hess.toarray(), one.hess.toarray(), rtol=1e-14, atol=0)

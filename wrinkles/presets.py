@@ -90,7 +90,10 @@ MEASURED_RUN = ("python benchmarks/speed_accuracy.py --resume --budget 60 "
 (h = 2 cm, so 165 / 654 / 2610 / 10434 shell vertices at 0 / 1 / 2 / 3 levels), 4 frames;
 reference: 3 levels, P2 body, exact Hessian, rtol 1e-8, 10434 vertices, 25.6 s/frame CPU,
 wrinkle wavelength 2.20 cm (:func:`wrinkles.measure.shell_wavelength`). The sweeps of
-sessions 2-4 (ten-fold shift schedule) chose the same presets."""
+sessions 2-4 (ten-fold shift schedule) chose the same presets. Rerun 2026-11-26 (session 7,
+another 2-core machine, load 1.2-1.3): the same errors, ``preview`` again on both fronts and
+``balanced`` on neither; CPU per frame preview 0.22 s, balanced 2.51 s, final (the reference)
+19.3 s."""
 
 PRESET_ROWS: dict[str, str] = {"preview": "levels=1", "balanced": "base", "final": "reference"}
 """Quality name -> the row of :data:`MEASURED_RUN`'s JSON that measured the preset ("base" is

@@ -98,3 +98,32 @@ def test_more_threads_than_vertices_and_disconnected_pieces() -> None:
     eight = ShellEnergy(topo, rest, replace(params, threads=8)).evaluate(x)
     assert eight.value == pytest.approx(one.value, rel=1e-14)
     assert np.allclose(eight.hess.toarray(), one.hess.toarray(), rtol=1e-14, atol=0)
+
+
+def test_threaded_newton_solve_keeps_the_serial_history() -> None:
+    """A whole multigrid shell Newton solve (exact Hessian, phase space, SBAIJ level
+    products) on two threads: the serial solve's iterations, energy and minimiser."""
+    import shellcases
+
+    from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver
+
+    hier = ShellHierarchy.build(*grid_plate(6, 6), levels=3)  # 2401 vertices
+    energy, x0 = shellcases.compressed_plate(hier.vertices, hier.faces, clusters=32)
+    runs = []
+    for threads in (1, 2):
+        threaded = ShellEnergy(energy.topology, energy.rest,
+                               replace(energy.params, threads=threads),
+                               H=energy.penalty_operator.H)
+        threaded.set_target(energy.target)
+        mg = MultigridOptions(rtol=1e-4, fallback=False, eigen_estimate="solve",
+                              level_format="sbaij", phase_space=True, threads=threads)
+        opts = ShellNewtonOptions(rtol=1e-9, hessian="exact", far_hessian="gauss_newton",
+                                  linear_method="multigrid", multigrid=mg)
+        runs.append(ShellNewtonSolver(threaded, opts, hierarchy=hier).minimize(x0))
+    (x1, one), (x2, two) = runs
+    print(f"one thread: {one.summary()}\ntwo threads: {two.summary()}; max |dx| "
+          f"{np.abs(x2 - x1).max():.1e}")
+    assert one.converged and two.converged
+    assert two.iterations == one.iterations
+    assert two.energy == pytest.approx(one.energy, rel=1e-12)
+    assert np.abs(x2 - x1).max() < 1e-8

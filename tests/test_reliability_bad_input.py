@@ -137,6 +137,8 @@ SCENE_CASES: list[tuple[str, Any, tuple[str, ...]]] = [
     ("mesh.builder", "teapot", ("mesh.builder",)),
     ("mesh.params", {"lx": 0.1, "radius": 2.0}, ("radius",)),
     ("mesh.params", {"lx": "wide", "ly": 0.1, "lz": 0.1, "h": 0.05}, ("lx",)),
+    ("shell.energy.threads", 0, ("shell.energy", "threads")),
+    ("shell.newton.multigrid.threads", 1.5, ("shell.newton.multigrid", "threads")),
 ]
 
 

@@ -119,4 +119,6 @@ def test_first_difference_names_the_dotted_key():
     assert first_difference(old, {**old, "time": {"frames": 9}}, ignore=("time",)) is None
     changed = {**old, "body": {"dt": 0.01, "time": 2, "pins": [1, 2]}}
     assert first_difference(old, changed, ignore=("time",)) == "body.time"  # top level only
+    assert first_difference(old, changed, ignore=("body.time",)) is None  # a dotted key
+    assert first_difference(old, changed, ignore=("body.dt",)) == "body.time"
     assert first_difference(old, {**old, "extra": 1}) == "extra"

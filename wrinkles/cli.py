@@ -59,7 +59,8 @@ def build_parser() -> ArgumentParser:
                      "(replaces time.frames / time.end_time)")
     run.add_argument("--resume", "--restart", dest="resume", action="store_true",
                      help="continue the run in --out from its last completed frame (same "
-                     "scene; time, output, newton may change); --restart is an alias")
+                     "scene; time, output, newton, shell.newton and shell.energy.threads may "
+                     "change); --restart is an alias")
     add_scene_arguments(commands.add_parser(
         "check", help="validate a scene file and print the resolved scene as JSON"))
     add_render_parser(commands)

@@ -87,6 +87,11 @@ from wrinkles.shell_stage import (
 SUMMED: tuple[str, ...] = ("newton_iterations", "halvings", "substeps")
 """``StepReport`` counts that add up over the steps of a frame."""
 
+RESTART_MAY_CHANGE: tuple[str, ...] = ("time", "output", "newton", "shell.newton",
+                                       "shell.energy.threads")
+"""Scene keys a ``--restart`` may change: time, output, the body's and the shell's solver
+options, and the threads of the shell's element kernels (round-off only)."""
+
 Stage = Callable[[int], Mapping[str, Any]]
 """One part of a frame: ``stage(frame)`` advances its model and returns record entries."""
 
@@ -384,10 +389,10 @@ def previous_run(run: Run, frame: int) -> tuple[list[FrameRecord], dict[str, Any
         raise InputError(f"{path}: cannot read the summary of the run to restart "
                          f"({exc})") from None
     changed = first_difference(summary.get("scene", {}), jsonable(scene_dict(run.scene)),
-                               ignore=("time", "output", "newton"))
+                               ignore=RESTART_MAY_CHANGE)
     if changed is not None:
         raise InputError(f"--restart: the scene differs from the run in {run.out} at "
-                         f"'{changed}' (only time, output and newton may change)")
+                         f"'{changed}' (only {', '.join(RESTART_MAY_CHANGE)} may change)")
     try:
         records = [FrameRecord(**r) for r in summary.get("frames", [])[:frame]]
     except TypeError as exc:
@@ -407,11 +412,14 @@ def first_difference(old: Any, new: Any, prefix: str = "",
                      ignore: tuple[str, ...] = ()) -> str | None:
     """Return the first dotted key whose value differs between two JSON documents.
 
-    ``ignore`` lists top-level keys left out of the comparison.
+    ``ignore`` lists dotted keys (from the root) left out of the comparison.
     """
     if isinstance(old, dict) and isinstance(new, dict):
-        for key in sorted((set(old) | set(new)) - set(ignore)):
-            found = first_difference(old.get(key), new.get(key), f"{prefix}.{key}".strip("."))
+        for key in sorted(set(old) | set(new)):
+            path = f"{prefix}.{key}".strip(".")
+            if path in ignore:
+                continue
+            found = first_difference(old.get(key), new.get(key), path, ignore)
             if found is not None:
                 return found
         return None

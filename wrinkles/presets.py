@@ -93,7 +93,9 @@ wrinkle wavelength 2.20 cm (:func:`wrinkles.measure.shell_wavelength`). The swee
 sessions 2-4 (ten-fold shift schedule) chose the same presets. Rerun 2026-11-26 (session 7,
 another 2-core machine, load 1.2-1.3): the same errors, ``preview`` again on both fronts and
 ``balanced`` on neither; CPU per frame preview 0.22 s, balanced 2.51 s, final (the reference)
-19.3 s."""
+19.3 s. The new row 'modified' (modified Newton at 2 levels, 2.24 s) joins the position front
+(rms 0.131) but has larger bending-energy and wavelength errors (17.9 % / 6.3 % against 16.2 %
+/ 3.7 %), so it does not beat ``balanced`` on all three and the presets stay."""
 
 PRESET_ROWS: dict[str, str] = {"preview": "levels=1", "balanced": "base", "final": "reference"}
 """Quality name -> the row of :data:`MEASURED_RUN`'s JSON that measured the preset ("base" is

@@ -233,23 +233,25 @@ evaluations and line search, the multigrid system's set-up parts, CG, true resid
 fallback."""
 
 
-def cpu_timed(obj: object, names: tuple[str, ...], totals: dict[str, float]) -> None:
+def cpu_timed(obj: object, names: tuple[str, ...], totals: dict[str, dict[str, float]]
+              ) -> None:
     """Wrap the bound methods ``names`` of ``obj`` to add their seconds to ``totals``.
 
-    ``totals[name]`` gets the process CPU seconds, ``totals[name + "@wall"]`` the wall ones
-    (they differ with ``--threads`` > 1).
+    ``totals["cpu"][name]`` gets the process CPU seconds, ``totals["wall"][name]`` the wall
+    ones (they differ with ``--threads`` > 1).
     """
     for name in names:
         method = getattr(obj, name)
 
         def timed(*a: object, _method=method, _name=name, **k: object) -> object:  # noqa: ANN001
-            start, wall = time.process_time(), time.perf_counter()
+            start = {"cpu": time.process_time(), "wall": time.perf_counter()}
             try:
                 return _method(*a, **k)
             finally:
-                totals[_name] = totals.get(_name, 0.0) + time.process_time() - start
-                key = _name + "@wall"
-                totals[key] = totals.get(key, 0.0) + time.perf_counter() - wall
+                now = {"cpu": time.process_time(), "wall": time.perf_counter()}
+                for clock, clock_totals in totals.items():
+                    clock_totals[_name] = (clock_totals.get(_name, 0.0) + now[clock]
+                                           - start[clock])
 
         setattr(obj, name, timed)
 
@@ -270,7 +272,7 @@ def solve_row(scene: Scene, method: str, args: argparse.Namespace) -> tuple[dict
     cpu0 = time.process_time()
     solver = ShellNewtonSolver(scene.energy, opts,  # type: ignore[arg-type]
                                hierarchy=scene.hierarchy)
-    parts: dict[str, float] = {}
+    parts: dict[str, dict[str, float]] = {"cpu": {}, "wall": {}}
     if getattr(args, "breakdown", False):
         cpu_timed(solver, CPU_PARTS["newton"], parts)
         if solver.krylov is not None:
@@ -278,7 +280,8 @@ def solve_row(scene: Scene, method: str, args: argparse.Namespace) -> tuple[dict
     x, report, reason = _minimize(solver, scene.x0)
     cpu_first = time.process_time() - cpu0
     for _ in range(args.repeat - 1):  # the same solver again: the last solve is reported
-        parts.clear()
+        for clock_parts in parts.values():
+            clock_parts.clear()
         cpu0 = time.process_time()
         if solver.krylov is not None:
             solver.krylov.stats = KrylovStats()
@@ -287,9 +290,9 @@ def solve_row(scene: Scene, method: str, args: argparse.Namespace) -> tuple[dict
     row["cpu_total"] = time.process_time() - cpu0
     row["cpu_first"] = cpu_first
     row["threads"] = args.threads
-    per_it = {k: v / max(report.iterations, 1) for k, v in parts.items()}
-    row["cpu_parts_per_iteration"] = {k: v for k, v in per_it.items() if "@" not in k}
-    row["wall_parts_per_iteration"] = {k.split("@")[0]: v for k, v in per_it.items() if "@" in k}
+    for clock, clock_parts in parts.items():
+        row[f"{clock}_parts_per_iteration"] = {k: v / max(report.iterations, 1)
+                                               for k, v in clock_parts.items()}
     row["cpu_iteration"] = row["cpu_total"] / max(report.iterations, 1)
     if solver.krylov is not None:
         stats = solver.krylov.stats

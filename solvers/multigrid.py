@@ -557,11 +557,10 @@ class _SymmetricCopy:
     def __init__(self, source: Any, values: np.ndarray | None = None, threads: int = 1) -> None:
         indptr, indices, source_values = source.getValuesCSR()
         self.positions, self.slots, self.bptr, self.bidx = _upper_blocks(indptr, indices)
-        first = self.bidx[np.minimum(self.bptr[:-1], max(self.bidx.size - 1, 0))] \
-            if self.bidx.size else np.empty(0, dtype=np.int64)
-        rows = np.arange(self.bptr.size - 1)
-        if np.any(np.diff(self.bptr) == 0) or np.any(first != rows):
-            # the diagonal is the first upper block of its row (getDiagonal, the kernel)
+        # the diagonal is the first upper block of its row (getDiagonal, the kernel); the
+        # second test only runs when no block row is empty (its index is then in range)
+        if np.any(np.diff(self.bptr) == 0) or np.any(
+                self.bidx[self.bptr[:-1]] != np.arange(self.bptr.size - 1)):
             raise InputError("MultigridLinearSystem: a level matrix lacks a diagonal block")
         self.values = np.zeros(9 * self.bidx.size)
         self.source, self.source_values = source, values

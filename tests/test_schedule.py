@@ -26,7 +26,7 @@ def plate() -> tuple[ShellTopology, np.ndarray]:
 @pytest.mark.parametrize("threads", [2, 3])
 def test_bands_split_stencils_into_disjoint_chunks_and_a_small_interface(plate, threads) -> None:
     topo, pts = plate
-    parts = vertex_parts(topo.edges, topo.n_vertices, threads)
+    parts = vertex_parts(topo.faces, topo.n_vertices, threads)
     counts = np.bincount(parts)
     assert counts.size == threads and counts.max() - counts.min() <= 1  # equal bands
     schedule = StencilSchedule.build(topo.hinges, parts)
@@ -42,7 +42,7 @@ def test_bands_split_stencils_into_disjoint_chunks_and_a_small_interface(plate, 
 
 def test_one_thread_is_the_plain_loop(plate) -> None:
     topo, _ = plate
-    schedule = StencilSchedule.build(topo.edges, vertex_parts(topo.edges, topo.n_vertices, 1))
+    schedule = StencilSchedule.build(topo.edges, vertex_parts(topo.faces, topo.n_vertices, 1))
     assert schedule.threads == 1 and schedule.interface.size == 0
     assert np.array_equal(schedule.chunks[0], np.arange(len(topo.edges)))
 
@@ -86,7 +86,7 @@ def test_more_threads_than_vertices_and_disconnected_pieces() -> None:
     pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 0, 0], [6, 0, 0], [5, 1, 0]], float)
     faces = np.array([[0, 1, 2], [3, 4, 5]])
     topo = ShellTopology.from_faces(faces, len(pts))
-    parts = vertex_parts(topo.edges, topo.n_vertices, 8)
+    parts = vertex_parts(topo.faces, topo.n_vertices, 8)
     assert parts.min() >= 0 and parts.max() < 8
     schedule = StencilSchedule.build(topo.edges, parts)
     ran = np.concatenate([*schedule.chunks, schedule.interface])

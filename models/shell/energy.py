@@ -57,6 +57,10 @@ from models.shell.topology import ShellTopology
 
 PenaltyHessian = Literal["assembled", "low_rank"]
 
+THREADED_TERMS: tuple[str, ...] = ("membrane_edge", "bending", "flip_barrier")
+"""The terms whose kernels take a :class:`~models.shell.schedule.StencilSchedule` (the area
+membrane runs serially)."""
+
 
 @dataclass(frozen=True)
 class ShellParams:
@@ -195,8 +199,9 @@ class ShellEnergy:
             list(stencils.values()), self.topology.n_vertices,
             extra=[gram] if gram is not None else [])
         self._maps: dict[str, ScatterMap] = dict(zip(stencils, self.pattern.maps, strict=True))
-        parts = vertex_parts(self.topology.edges, self.n_vertices, self.params.threads)
-        self._schedules = {name: StencilSchedule.build(st, parts) for name, st in stencils.items()}
+        parts = vertex_parts(self.topology.faces, self.n_vertices, self.params.threads)
+        self._schedules = {name: StencilSchedule.build(st, parts)
+                           for name, st in stencils.items() if name in THREADED_TERMS}
         self._hess_base = (self.pattern.extra_data(0, gram, 2.0 * self.params.k_P)
                            if gram is not None else None)
         self._factor = (penalty_factor(self._penalty, self.params.k_P)

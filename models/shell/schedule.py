@@ -5,7 +5,7 @@ The fused kernels (:mod:`models.shell.membrane`, :mod:`models.shell.bending`,
 A stencil only writes the gradient entries and the Hessian rows of its own vertices
 (:func:`models.shell.assembly.scatter_block`), so two stencils without a common vertex never
 write the same number. :func:`vertex_parts` splits the vertices into ``threads`` bands (equal
-contiguous ranges of a reverse Cuthill-McKee order of the edge graph: level sets of a
+contiguous ranges of a reverse Cuthill-McKee order of the vertex graph: level sets of a
 breadth-first search, Cuthill & McKee 1969); :class:`StencilSchedule` gives thread t the
 stencils whose vertices all lie in band t and keeps the stencils that straddle two bands (the
 interface, O(sqrt n) of them on a surface) for afterwards. :meth:`StencilSchedule.run` runs
@@ -29,10 +29,10 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from models.errors import InputError
+from models.shell.reorder import vertex_adjacency
 
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 
@@ -52,15 +52,15 @@ def thread_pool(threads: int) -> ThreadPoolExecutor:
     return _POOLS[threads]
 
 
-def vertex_parts(edges: np.ndarray, n_vertices: int, threads: int) -> np.ndarray:
-    """Band of each vertex (n,): ``threads`` equal ranges of an RCM order of the edge graph."""
+def vertex_parts(faces: np.ndarray, n_vertices: int, threads: int) -> np.ndarray:
+    """Band of each vertex (n,): ``threads`` equal ranges of an RCM order of the face edges.
+
+    The order is :mod:`models.shell.reorder`'s (RCM on :func:`vertex_adjacency`).
+    """
     threads = check_threads(threads)
     if threads == 1 or n_vertices == 0:
         return np.zeros(n_vertices, dtype=np.int64)
-    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
-    graph = sp.coo_matrix((np.ones(2 * len(e)), (e.ravel(), e[:, ::-1].ravel())),
-                          shape=(n_vertices, n_vertices)).tocsr()
-    order = reverse_cuthill_mckee(graph, symmetric_mode=True)
+    order = reverse_cuthill_mckee(vertex_adjacency(faces, n_vertices), symmetric_mode=True)
     parts = np.empty(n_vertices, dtype=np.int64)
     parts[order] = np.arange(n_vertices) * threads // n_vertices
     return parts

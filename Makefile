@@ -34,7 +34,7 @@ test-all: $(STAMP)
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check models solvers meshes wrinkles tests benchmarks
+	$(VENV)/bin/ruff check models solvers meshes wrinkles validation tests benchmarks paper
 	$(VENV)/bin/mypy
 
 bench: $(STAMP)

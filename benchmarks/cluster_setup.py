@@ -46,15 +46,14 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import numpy as np  # noqa: E402
-import scipy.sparse as sp  # noqa: E402
+import numpy as np
+import scipy.sparse as sp
 
-from benchmarks.scaling import Timings, power_fit, stopwatch  # noqa: E402
-from benchmarks.shell_solve import proc_status_mib  # noqa: E402
-from meshes.shells import grid_plate  # noqa: E402
-from models.embedding.clusters import (  # noqa: E402
+from benchmarks.scaling import Timings, power_fit, stopwatch
+from benchmarks.shell_solve import proc_status_mib
+from meshes.shells import grid_plate
+from models.embedding.clusters import (
     edge_graph,
     farthest_point_centres,
     gaussian_weights,

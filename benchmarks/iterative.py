@@ -63,25 +63,23 @@ import argparse
 import json
 import os
 import platform
-import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from benchmarks.shell_solve import cluster_matrix, proc_status_mib, reset_peak_rss  # noqa: E402
-from meshes.shells import grid_plate  # noqa: E402
-from models.backend import PETSc  # noqa: E402
-from models.shell.energy import ShellEnergy, ShellParams  # noqa: E402
-from models.shell.rest import RestState  # noqa: E402
-from models.shell.topology import ShellTopology  # noqa: E402
-from solvers.multigrid import KrylovStats, MultigridOptions, ShellHierarchy  # noqa: E402
-from solvers.shell_newton import (  # noqa: E402
+from benchmarks.shell_solve import cluster_matrix, proc_status_mib, reset_peak_rss
+from meshes.shells import grid_plate
+from models.backend import PETSc
+from models.shell.energy import ShellEnergy, ShellParams
+from models.shell.rest import RestState
+from models.shell.topology import ShellTopology
+from solvers.multigrid import KrylovStats, MultigridOptions, ShellHierarchy
+from solvers.shell_newton import (
     ModifiedNewtonOptions,
     ShellNewtonOptions,
     ShellNewtonSolver,

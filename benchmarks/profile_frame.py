@@ -33,7 +33,6 @@ import io
 import json
 import os
 import pstats
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -41,11 +40,10 @@ from typing import Any
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from models.backend import MPI  # noqa: E402
-from wrinkles.runner import Run, prepare, run_frames  # noqa: E402
-from wrinkles.scene import load_scene, with_frames  # noqa: E402
+from models.backend import MPI
+from wrinkles.runner import Run, prepare, run_frames
+from wrinkles.scene import load_scene, with_frames
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -101,7 +99,7 @@ def series_main(args: argparse.Namespace) -> None:
 def profiled_run(scene_path: Path, frames: int, overrides: list[str],
                  out: Path) -> tuple[Run, cProfile.Profile, float]:
     """Prepare and run the scene under cProfile; return the run, the profile, set-up time."""
-    scene = with_frames(load_scene(scene_path, [*overrides, "shell.render=false"]), frames)
+    scene = with_frames(load_scene(scene_path, [*overrides, "output.render=false"]), frames)
     t0 = time.perf_counter()
     run = prepare(scene, out, MPI.COMM_WORLD)
     setup = time.perf_counter() - t0

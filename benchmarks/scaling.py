@@ -68,11 +68,10 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from benchmarks.iterative import (  # noqa: E402
+from benchmarks.iterative import (
     COARSE_CELLS,
     COMPRESSION,
     LEVELS,
@@ -80,13 +79,13 @@ from benchmarks.iterative import (  # noqa: E402
     Scene,
     compressed,
 )
-from benchmarks.shell_solve import cluster_matrix, proc_status_mib  # noqa: E402
-from meshes.shells import grid_plate  # noqa: E402
-from models.shell.energy import ShellEnergy, ShellParams  # noqa: E402
-from models.shell.rest import RestState  # noqa: E402
-from models.shell.topology import ShellTopology  # noqa: E402
-from solvers.multigrid import ShellHierarchy  # noqa: E402
-from solvers.shell_newton import (  # noqa: E402
+from benchmarks.shell_solve import cluster_matrix, proc_status_mib
+from meshes.shells import grid_plate
+from models.shell.energy import ShellEnergy, ShellParams
+from models.shell.rest import RestState
+from models.shell.topology import ShellTopology
+from solvers.multigrid import ShellHierarchy
+from solvers.shell_newton import (
     ShellNewtonOptions,
     ShellNewtonSolver,
     ShellSolveError,

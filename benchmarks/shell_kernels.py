@@ -34,29 +34,27 @@ import json
 import os
 import platform
 import resource
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import numba  # noqa: E402
-import numpy as np  # noqa: E402
-import scipy.sparse as sp  # noqa: E402
-from scipy.spatial import cKDTree  # noqa: E402
+import numba
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
 
-from meshes.shells import icosphere, irregular_plate, perturb  # noqa: E402
-from models.shell.assembly import StencilPattern, assemble  # noqa: E402
-from models.shell.bending import hinge_bending  # noqa: E402
-from models.shell.energy import ShellEnergy, ShellParams  # noqa: E402
-from models.shell.membrane import area_membrane, edge_membrane  # noqa: E402
-from models.shell.penalty import PenaltyOperator, penalty_term  # noqa: E402
-from models.shell.reorder import REORDER_METHODS, reorder_mesh  # noqa: E402
-from models.shell.rest import RestState  # noqa: E402
-from models.shell.topology import ShellTopology  # noqa: E402
+from meshes.shells import icosphere, irregular_plate, perturb
+from models.shell.assembly import StencilPattern, assemble
+from models.shell.bending import hinge_bending
+from models.shell.energy import ShellEnergy, ShellParams
+from models.shell.membrane import area_membrane, edge_membrane
+from models.shell.penalty import PenaltyOperator, penalty_term
+from models.shell.reorder import REORDER_METHODS, reorder_mesh
+from models.shell.rest import RestState
+from models.shell.topology import ShellTopology
 
 SIZES = {"10k": (5, 10_000), "40k": (6, 40_000), "160k": (7, 160_000), "640k": (8, 640_000)}
 RESULTS = Path(__file__).resolve().parent / "results" / "shell_kernels.json"

@@ -58,25 +58,23 @@ import argparse
 import json
 import os
 import platform
-import sys
 import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import numpy as np  # noqa: E402
-import scipy.sparse as sp  # noqa: E402
-from scipy.spatial import cKDTree  # noqa: E402
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
 
-from meshes.shells import icosphere, irregular_plate, perturb  # noqa: E402
-from models.backend import PETSc  # noqa: E402
-from models.shell.energy import PenaltyHessian, ShellEnergy, ShellParams  # noqa: E402
-from models.shell.reorder import REORDER_METHODS, reorder_mesh  # noqa: E402
-from models.shell.rest import RestState  # noqa: E402
-from models.shell.topology import ShellTopology  # noqa: E402
-from solvers.linear import (  # noqa: E402
+from meshes.shells import icosphere, irregular_plate, perturb
+from models.backend import PETSc
+from models.shell.energy import PenaltyHessian, ShellEnergy, ShellParams
+from models.shell.reorder import REORDER_METHODS, reorder_mesh
+from models.shell.rest import RestState
+from models.shell.topology import ShellTopology
+from solvers.linear import (
     AugmentedPenaltySolver,
     LinearSolverOptions,
     SparseDirectSolver,

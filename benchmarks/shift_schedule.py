@@ -3,12 +3,12 @@
 Far from a wrinkled minimum the exact shell Hessian is indefinite (the flat start of
 scenes/default.toml has about 1200 negative eigenvalues), and every Newton iteration solves
 with ``A + tau I`` (:func:`solvers.linear.shift_candidates`): shifts grow by
-``shell.newton.shift.growth`` until the factorisation is positive definite and the line search
-accepts the step, and the next iteration starts from ``tau / shell.newton.shift_decay``. A
-shift larger than needed shortens the step in every soft direction; a start too small pays a
-failed factorisation. This benchmark runs whole scenes in this process
-(:func:`speed_accuracy.run_config`: serial, no output files, after an untimed JIT warm-up)
-with each ``growth/decay`` pair and records per frame the shell Newton iterations,
+``shell.solver.options.newton.shift.growth`` until the factorisation is positive definite and the
+line search accepts the step, and the next iteration starts from ``tau /
+shell.solver.options.newton.shift_decay``. A shift larger than needed shortens the step in every
+soft direction; a start too small pays a failed factorisation. This benchmark runs whole scenes in
+this process (:func:`speed_accuracy.run_config`: serial, no output files, after an untimed JIT
+warm-up) with each ``growth/decay`` pair and records per frame the shell Newton iterations,
 factorisations, shifted iterations and shell Newton wall time, the final shell energy, and
 the process CPU time of all frames.
 
@@ -32,12 +32,9 @@ import json
 import math
 import os
 import platform
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from speed_accuracy import run_config  # noqa: E402
+from benchmarks.speed_accuracy import run_config
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "shift_schedule.json"
@@ -55,8 +52,9 @@ def schedule_overrides(schedule: str) -> list[str]:
     """Scene overrides of a ``growth/decay`` pair (with the matching ``max_shifts``)."""
     growth, decay = (float(v) for v in schedule.split("/"))
     shifts = math.ceil(math.log(CEILING) / math.log(growth)) + 1
-    return [f"shell.newton.shift.growth={growth!r}", f"shell.newton.shift_decay={decay!r}",
-            f"shell.newton.shift.max_shifts={shifts}"]
+    key = "shell.solver.options.newton"
+    return [f"{key}.shift.growth={growth!r}", f"{key}.shift_decay={decay!r}",
+            f"{key}.shift.max_shifts={shifts}"]
 
 
 def run_scene(scene: str, schedule: str, extra: list[str]) -> dict:

@@ -15,7 +15,7 @@ with the reference at the final frame:
   its own vertices (common vertices); a shell on another body mesh is interpolated
   (barycentric, nearest rest triangle) at the reference's rest points;
 * bending energy ``k_B W_B`` relative error;
-* dominant wrinkle wavelength (:func:`wrinkles.measure.shell_wavelength` of the normal
+* dominant wrinkle wavelength (:func:`validation.measure.shell_wavelength` of the normal
   deviation from the target on the lateral faces along the longest axis) and its relative
   error;
 * wall time per frame AND process CPU time per frame (mean over frames, output files off:
@@ -81,33 +81,30 @@ from typing import Any
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import numpy as np  # noqa: E402
-from scipy.spatial import cKDTree  # noqa: E402
-from shell_solve import proc_status_mib, reset_peak_rss  # noqa: E402
+import numpy as np
+from scipy.spatial import cKDTree
 
-from models.backend import MPI  # noqa: E402
-from models.errors import InputError, SolverError  # noqa: E402
-from wrinkles.measure import normal_heights, shell_wavelength  # noqa: E402
-from wrinkles.output import write_text_atomic  # noqa: E402
-from wrinkles.presets import PRESET_ROWS  # noqa: E402
-from wrinkles.runner import prepare, run_frames  # noqa: E402
-from wrinkles.scene import load_scene  # noqa: E402
+from benchmarks.shell_solve import proc_status_mib, reset_peak_rss
+from meshes.errors import InputError, SolverError
+from models.backend import MPI
+from validation.measure import normal_heights, shell_wavelength
+from wrinkles.output import write_text_atomic
+from wrinkles.presets import PRESET_ROWS
+from wrinkles.runner import prepare, run_frames
+from wrinkles.scene import load_scene
 
 RESULTS = Path(__file__).resolve().parent / "results"
-QUIET = ["shell.render=false", "shell.xdmf=false", "output.xdmf=false",
-         "output.summary=false", "output.checkpoint=false"]
+QUIET = ["output.render=false", "output.xdmf=false", "output.checkpoint=false"]
 """Overrides of every run: no output files, no rendering (timing the solve, not the disk)."""
 
 QUICK_BASE = ["mesh.params.h=0.05", "time.frames=2", "body.dt=0.5",
-              "shell.newton.max_iterations=200"]
+              "shell.solver.max_iterations=200"]
 """``--quick``: coarse body mesh, 2 frames of the same total load (tiny, seconds)."""
 
-REFERENCE = ["body.degree=2", "shell.energy.hessian_mode=\"exact\"",
-             "shell.newton.far_hessian=\"\"", "shell.newton.rtol=1e-8",
-             "shell.newton.max_iterations=500"]
+REFERENCE = ["body.degree=2", "shell.solver.hessian=\"exact\"",
+             "shell.solver.options.newton.far_hessian=\"\"", "shell.solver.rtol=1e-8",
+             "shell.solver.max_iterations=500"]
 """The reference's settings besides its subdivision level."""
 
 
@@ -142,7 +139,7 @@ class SceneFacts:
 
     Attributes:
         levels: shell subdivision levels.
-        hessian: shell Hessian mode (``shell.energy.hessian_mode``).
+        hessian: shell Hessian mode (``shell.solver.hessian``).
         far_hessian: PSD mode used far from the minimum ("" for none).
         rtol: shell Newton relative tolerance.
         h: body mesh size of the builder [m]; ``None`` for a mesh file.
@@ -172,8 +169,9 @@ def scene_facts(scene_path: Path, base: list[str]) -> SceneFacts:
         raise InputError(f"{scene_path}: the speed/accuracy sweep needs a [shell] table")
     h = scene.mesh.params.get("h") if scene.mesh.builder else None
     return SceneFacts(levels=scene.shell.subdivision.levels,
-                      hessian=scene.shell.energy.hessian_mode,
-                      far_hessian=scene.shell.newton.far_hessian, rtol=scene.shell.newton.rtol,
+                      hessian=scene.shell.solver.hessian,
+                      far_hessian=scene.shell.internals.newton.far_hessian,
+                      rtol=scene.shell.solver.rtol,
                       h=None if h is None else float(h),
                       dynamic=scene.body.dynamics != "static", dt=scene.body.dt,
                       steps_per_frame=scene.time.steps_per_frame,
@@ -181,14 +179,16 @@ def scene_facts(scene_path: Path, base: list[str]) -> SceneFacts:
 
 
 HESSIANS: dict[str, tuple[str, ...]] = {
-    "exact": ('shell.energy.hessian_mode="exact"', 'shell.newton.far_hessian=""'),
-    "gauss_newton": ('shell.energy.hessian_mode="gauss_newton"', 'shell.newton.far_hessian=""'),
-    "mixed": ('shell.energy.hessian_mode="exact"', 'shell.newton.far_hessian="projected"'),
-    "projected": ('shell.energy.hessian_mode="projected"', 'shell.newton.far_hessian=""'),
+    "exact": ('shell.solver.hessian="exact"', 'shell.solver.options.newton.far_hessian=""'),
+    "gauss_newton": ('shell.solver.hessian="gauss_newton"',
+                     'shell.solver.options.newton.far_hessian=""'),
+    "mixed": ('shell.solver.hessian="exact"',
+              'shell.solver.options.newton.far_hessian="projected"'),
+    "projected": ('shell.solver.hessian="projected"', 'shell.solver.options.newton.far_hessian=""'),
 }
 """Hessian modes of the sweep: mixed = projected far from the minimum, then exact."""
 
-MODIFIED = "shell.newton.modified.enabled=true"
+MODIFIED = "shell.solver.options.newton.modified.enabled=true"
 """Modified Newton: one factorisation reused over up to 4 Newton iterations (and frames) while
 the gradient norm falls by half per iteration (:class:`solvers.shell_newton.ModifiedNewtonOptions`).
 Measured on the two-way scene of 4 frames (2026-11-26): 56.7 instead of 73.4 s wall, since a
@@ -247,16 +247,16 @@ def shift_knobs() -> list[Config]:
     """The solver's default ten-fold shift schedule (growth 10, decay 10) against the presets' 5 / 2
     (:class:`solvers.linear.ShiftOptions`, ``benchmarks/shift_schedule.py``): the same
     tolerance, but a path of other step lengths may settle in another wrinkle branch."""
-    return [Config("shift=10/10", "shift", ("shell.newton.shift.growth=10.0",
-                                            "shell.newton.shift_decay=10.0",
-                                            "shell.newton.shift.max_shifts=14"))]
+    return [Config("shift=10/10", "shift", ("shell.solver.options.newton.shift.growth=10.0",
+                                            "shell.solver.options.newton.shift_decay=10.0",
+                                            "shell.solver.options.newton.shift.max_shifts=14"))]
 
 
 def newton_knobs(facts: SceneFacts) -> list[Config]:
     """Shell Newton tolerance (and, run only on request, the iteration cap)."""
-    c = [Config(f"rtol={r:g}", "newton_rtol", (f"shell.newton.rtol={r!r}",))
+    c = [Config(f"rtol={r:g}", "newton_rtol", (f"shell.solver.rtol={r!r}",))
          for r in (1e-3, 1e-4, 1e-8) if r != facts.rtol]
-    return c + [Config(f"max_it={k}", "newton_cap", (f"shell.newton.max_iterations={k}",))
+    return c + [Config(f"max_it={k}", "newton_cap", (f"shell.solver.max_iterations={k}",))
                 for k in (10, 30)]
 
 
@@ -288,13 +288,12 @@ def other_knobs() -> list[Config]:
                                            f"shell.clusters.sigma={s!r}"))
           for s in (0.0035, 0.013)]
     c += [Config("body=P2", "body", ("body.degree=2",))]
-    two_way = ('shell.coupling.mode="two_way"', 'shell.coupling.scheme="implicit"',
-               "shell.coupling.max_iterations=80")
+    two_way = ('shell.coupling.mode="two_way"', "shell.solver.options.coupling.max_iterations=80")
     c += [Config("two_way", "coupling", two_way),
           Config("two_way+modified", "coupling", (*two_way, MODIFIED))]
     return c + [Config("linear=assembled_mumps", "linear",
-                       ('shell.energy.penalty_hessian="assembled"',
-                        'shell.newton.linear.backend="mumps"')),
+                       ('shell.solver.options.energy.penalty_hessian="assembled"',
+                        'shell.solver.options.newton.linear.backend="mumps"')),
                 Config("modified", "linear", (MODIFIED,))]
 
 
@@ -304,7 +303,7 @@ def combinations(facts: SceneFacts, levels: list[int] | None = None) -> list[Con
     def combo(n: int, mode: str) -> Config:
         return Config(f"L{n}+{mode}+rtol=0.001", "combo",
                       (f"shell.subdivision.levels={n}", *HESSIANS[mode],
-                       "shell.newton.rtol=0.001"))
+                       "shell.solver.rtol=0.001"))
 
     finer = [n for n in levels or [] if n > facts.levels]
     return ([combo(facts.levels, m) for m in ("gauss_newton", "mixed", "projected")]
@@ -455,7 +454,7 @@ def compared_positions(ref: dict[str, np.ndarray], cand: dict[str, np.ndarray]
 
 
 def wrinkle_wavelength(arrays: dict[str, np.ndarray]) -> float | None:
-    """Dominant wrinkle wavelength [m] of the final shell (:mod:`wrinkles.measure`).
+    """Dominant wrinkle wavelength [m] of the final shell (:mod:`validation.measure`).
 
     The normal deviation from the target, ``(x - y) . n_y``, on the flat lateral faces
     parallel to the longest axis of the rest shell (the compression axis of the bar), one

@@ -23,9 +23,9 @@ import gmsh
 import numpy as np
 
 from meshes.cache import cached
+from meshes.errors import InputError, SolverError, WrinklesError
 from meshes.tetmesh import TetMesh
 from meshes.validate import validate
-from models.errors import InputError, SolverError, WrinklesError
 
 #: Refuse calls whose estimated tet count ``8.5 V / h^3`` exceeds this (a typo in ``h``
 #: would otherwise run gmsh for hours).

@@ -16,12 +16,17 @@ from pathlib import Path
 import meshio
 import numpy as np
 
+from meshes.errors import InputError
 from meshes.tetmesh import TetMesh
 from meshes.validate import ValidationOptions, resolve_options, validate
-from models.errors import InputError
 
 #: meshio cell types read as linear tets, with the columns that are their corners.
 TET_CELL_TYPES: dict[str, slice] = {"tetra": slice(0, 4), "tetra10": slice(0, 4)}
+#: meshio cell types of volume cells this code cannot use (a file holding any is refused).
+OTHER_VOLUME_TYPES: tuple[str, ...] = (
+    "hexahedron", "hexahedron20", "hexahedron24", "hexahedron27", "wedge", "wedge12", "wedge15",
+    "wedge18", "pyramid", "pyramid13", "pyramid14", "polyhedron", "VTK_LAGRANGE_HEXAHEDRON",
+    "VTK_LAGRANGE_WEDGE", "VTK_LAGRANGE_PYRAMID")
 
 
 def read_meshio(path: Path) -> meshio.Mesh:
@@ -47,10 +52,23 @@ def read_meshio(path: Path) -> meshio.Mesh:
 def tet_cells(mesh: meshio.Mesh, source: str) -> np.ndarray:
     """Concatenate the tetra (and tetra10 corner) cell blocks of a meshio mesh.
 
+    Surface and line cells (boundary tags) are ignored; other volume cells are refused, since
+    dropping them would silently lose part of the body.
+
     Raises:
-        InputError: The file has no tetrahedra; the message lists the cell types found.
+        InputError: The file has no tetrahedra, or volume cells other than tetrahedra; the
+            message lists the cell types and their counts.
 
     """
+    counts: dict[str, int] = {}
+    for block in mesh.cells:
+        if len(block.data) and (block.type in OTHER_VOLUME_TYPES
+                                or block.type.startswith("polyhedron")):
+            counts[block.type] = counts.get(block.type, 0) + len(block.data)
+    if counts:
+        found = ", ".join(f"{n} {kind}" for kind, n in sorted(counts.items()))
+        raise InputError(f"{source}: volume cells other than tetrahedra ({found}); only "
+                         f"tetrahedral meshes can be used (convert the mesh, e.g. with gmsh)")
     blocks = [np.asarray(b.data)[:, TET_CELL_TYPES[b.type]] for b in mesh.cells
               if b.type in TET_CELL_TYPES and len(b.data)]
     if not blocks:

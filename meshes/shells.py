@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 from scipy.spatial import Delaunay
 
-from models.errors import InputError
+from meshes.errors import InputError
 
 Mesh = tuple[np.ndarray, np.ndarray]
 

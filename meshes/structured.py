@@ -14,9 +14,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from meshes.errors import InputError
 from meshes.tetmesh import IntArray, TetMesh
 from meshes.validate import validate
-from models.errors import InputError
 
 
 def _kuhn_local() -> IntArray:

@@ -1,6 +1,6 @@
 """Validation of tetrahedral meshes from any source (builders, files, raw arrays).
 
-Every check raises :class:`models.errors.InputError` with a one-line message naming the
+Every check raises :class:`meshes.errors.InputError` with a one-line message naming the
 mesh source (file path or builder) and the offending element, point, face, edge or vertex.
 On arbitrary garbage input (wrong shapes, negative, out-of-range or float indices, NaN)
 :func:`validate` raises nothing but ``InputError``.
@@ -33,6 +33,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from meshes.errors import InputError
 from meshes.tetmesh import (
     TET_FACES,
     FloatArray,
@@ -46,7 +47,6 @@ from meshes.tetmesh import (
     max_edge_lengths,
     tet_volumes,
 )
-from models.errors import InputError
 
 
 class MeshWarning(UserWarning):

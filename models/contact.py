@@ -27,13 +27,13 @@ from typing import Any
 
 import numpy as np
 
+from meshes.errors import InputError
 from models.backend import MPI, dolfinx, ufl
-from models.errors import InputError
 
 OBSTACLES: tuple[str, ...] = ("plane", "sphere")
 
 
-def _vector3(name: str, value: Any) -> tuple[float, float, float]:
+def vector3(name: str, value: Any) -> tuple[float, float, float]:
     """Return a finite 3-vector as a tuple of floats, or raise InputError naming ``name``."""
     arr = np.asarray(value, dtype=float).reshape(-1)
     if arr.shape != (3,) or not np.all(np.isfinite(arr)):
@@ -72,12 +72,12 @@ class ContactOptions:
     def __post_init__(self) -> None:
         if self.obstacle not in OBSTACLES:
             raise InputError(f"contact.obstacle must be one of {OBSTACLES}, got {self.obstacle!r}")
-        object.__setattr__(self, "point", _vector3("contact.point", self.point))
-        object.__setattr__(self, "center", _vector3("contact.center", self.center))
-        normal = np.asarray(_vector3("contact.normal", self.normal))
+        object.__setattr__(self, "point", vector3("contact.point", self.point))
+        object.__setattr__(self, "center", vector3("contact.center", self.center))
+        normal = np.asarray(vector3("contact.normal", self.normal))
         if np.linalg.norm(normal) == 0.0:
             raise InputError("contact.normal must be non-zero")
-        object.__setattr__(self, "normal", _vector3("contact.normal",
+        object.__setattr__(self, "normal", vector3("contact.normal",
                                                     normal / np.linalg.norm(normal)))
         if not (math.isfinite(self.radius) and self.radius > 0.0):
             raise InputError(f"contact.radius must be > 0, got {self.radius}")
@@ -123,7 +123,7 @@ class PenaltyContact:
 
     def set_center(self, center: Any) -> None:
         """Move the sphere's centre [m] (takes effect at the next solve)."""
-        self.center.value[:] = _vector3("contact.center", center)
+        self.center.value[:] = vector3("contact.center", center)
 
     def gap(self, u: Any) -> tuple[Any, Any]:
         """Signed gap ``g`` and its gradient ``grad g`` at ``x = X + u`` (UFL)."""

@@ -10,105 +10,23 @@ and, since ``dy/du_q = B``, on the body's degrees of freedom with the nodal forc
 force is conserved: ``sum_j F_j = sum_i f_i`` (per component).
 
 The body minimises an energy, so a nodal force enters as the potential ``-F . u``:
-:meth:`models.body.Body.set_nodal_load` (``-int g . u dX`` with ``M g = F``); the total force
-actually applied is :meth:`models.body.Body.applied_load`, ``int g dX``.
+:meth:`solvers.body.Body.set_nodal_load` (``-int g . u dX`` with ``M g = F``); the total force
+actually applied is :meth:`solvers.body.Body.applied_load`, ``int g dX``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 
 from models.backend import PETSc, dolfinx
 from models.embedding.embedding import Embedding, add_transpose_to_function
-from models.errors import InputError
+from models.quadratic import QuadraticTerm
 from models.shell.penalty import PenaltyOperator, penalty_gram
 from models.shell.penalty import penalty_term as shell_penalty_term
-from solvers.body_newton import QuadraticTerm
-
-CouplingMode = Literal["one_way", "two_way"]
-CouplingScheme = Literal["explicit", "implicit"]
-CouplingAcceleration = Literal["none", "aitken", "anderson"]
-
-
-@dataclass(frozen=True)
-class CouplingOptions:
-    """How the shell acts back on the body.
-
-    Attributes:
-        mode: ``"one_way"`` (the shell follows the body, Algorithm 1 of the draft) or
-            ``"two_way"`` (the penalty force ``B^T f`` is fed back to the body and the frame's
-            body step re-solved until the body displacement stops changing).
-        scheme: two-way iteration: ``"implicit"`` (the default) makes the penalty, with the
-            shell fixed, a quadratic term of the body's energy (:func:`penalty_term`, Newton
-            sees its stiffness) and alternates body and shell minimisation of the total
-            energy (block Gauss-Seidel: monotone in the total energy, so it does not diverge
-            for stiff skins; ``relaxation`` is not used; see ``acceleration``);
-            ``"explicit"`` feeds the (relaxed) penalty force back as a fixed load, cheaper
-            per iteration but only for skins not much stiffer than the body (the default
-            scene's 1000x skin makes its body step fail,
-            tests/test_followup_implicit_coupling.py).
-        acceleration: (implicit scheme) acceleration of the body/shell fixed-point iteration,
-            applied to the body load ``c = M (x - X_T)`` of the implicit term: ``"anderson"``
-            (multi-secant Anderson / IQN-ILS, :class:`wrinkles.shell_stage.Anderson`),
-            ``"aitken"`` (one scalar factor, :class:`wrinkles.shell_stage.Aitken`) or
-            ``"none"`` (plain alternation, monotone in the total energy). The alternation
-            contracts by only ~0.90-0.98 per iteration on a 1000x skin (strong coupling);
-            measured on scenes/default.toml (2 frames, one subdivision level) Anderson
-            reaches ``rtol = 1e-6`` in 38 and 61 iterations (full size, 4 frames: 48, 47,
-            62, 56; 36 / 60 and 47 / 44 / 45 / 73 before the x5 / 2 shift schedule),
-            while Aitken on the shell iterate stalled (change 2.9e-4 after 25 iterations,
-            frame 1; on the load: 3.2e-6 after 40), hence the default
-            ``max_iterations = 100`` (a cap of 10 stopped at changes 2.6e-3 and 8.0e-3).
-        memory: (``acceleration = "anderson"``) number of previous residual differences in
-            the least-squares secant, >= 1. Frame 1 of the run above: 4 -> change 7e-6
-            after 40 iterations, 8 -> converged in 36, 20 -> in 33.
-        max_iterations: body/shell fixed-point iterations per frame (two-way), >= 1. A cap,
-            not a cost: the iteration stops at ``rtol``; a frame that reaches the cap is
-            kept but flagged ``coupling_converged = false`` ("NOT converged" in the
-            progress line).
-        rtol: the fixed point is converged when ``max|u_k - u_{k-1}| <= rtol max|u_k|``
-            (dimensionless).
-        relaxation: under-relaxation omega of the fed-back force,
-            ``F_k = (1 - omega) F_{k-1} + omega B^T f_k``, in (0, 1]. The force is lagged
-            (explicit), so the iteration contracts only while the stiffness the shell
-            transmits through the penalty is not much larger than the body's: measured on a
-            soft bar, a skin 10x stiffer than the body converges in 9 iterations with 0.7 (30
-            iterations unconverged with 1.0); a 1000x skin makes the body step diverge.
-
-    """
-
-    mode: CouplingMode = "one_way"
-    scheme: CouplingScheme = "implicit"
-    acceleration: CouplingAcceleration = "anderson"
-    memory: int = 8
-    max_iterations: int = 100
-    rtol: float = 1e-6
-    relaxation: float = 0.5
-
-    def __post_init__(self) -> None:
-        if self.mode not in ("one_way", "two_way"):
-            raise InputError(f"shell.coupling.mode: expected 'one_way' or 'two_way', "
-                             f"got {self.mode!r}")
-        if self.scheme not in ("explicit", "implicit"):
-            raise InputError(f"shell.coupling.scheme: expected 'explicit' or 'implicit', "
-                             f"got {self.scheme!r}")
-        if self.acceleration not in ("none", "aitken", "anderson"):
-            raise InputError(f"shell.coupling.acceleration: expected 'none', 'aitken' or "
-                             f"'anderson', got {self.acceleration!r}")
-        if self.memory < 1:
-            raise InputError(f"shell.coupling.memory: must be >= 1, got {self.memory}")
-        if self.max_iterations < 1:
-            raise InputError(f"shell.coupling.max_iterations: must be >= 1, "
-                             f"got {self.max_iterations}")
-        if not (np.isfinite(self.rtol) and self.rtol > 0.0):
-            raise InputError(f"shell.coupling.rtol: must be > 0, got {self.rtol}")
-        if not 0.0 < self.relaxation <= 1.0:
-            raise InputError(f"shell.coupling.relaxation: must be in (0, 1], "
-                             f"got {self.relaxation}")
 
 
 def penalty_force(H: sp.csr_matrix | PenaltyOperator, k_P: float, x: np.ndarray,
@@ -141,8 +59,7 @@ class PenaltyCoupling:
 
     ``K = 2 k_P (B^T H^T H B) (x) I_3`` and ``M = 2 k_P B^T H^T H`` depend on the embedding,
     the clusters and ``k_P`` only, so the two-way iteration assembles them once and forms
-    only ``c = M d`` per iteration (session 1 rebuilt ``H^T H``, ``B^T H^T H B`` and the
-    PETSc matrix at every body/shell iteration).
+    only ``c = M d`` per iteration.
 
     Attributes:
         K: PETSc matrix of this rank's owned rows (shared by every :meth:`term`: do not
@@ -238,5 +155,4 @@ def body_force_function(emb: Embedding, forces: np.ndarray, V: Any) -> Any:
     return F
 
 
-__all__ = ["CouplingAcceleration", "CouplingMode", "CouplingOptions", "CouplingScheme",
-           "PenaltyCoupling", "body_force_function", "penalty_force", "penalty_term"]
+__all__ = ["PenaltyCoupling", "body_force_function", "penalty_force", "penalty_term"]

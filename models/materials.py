@@ -23,8 +23,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from meshes.errors import InputError
 from models.backend import ufl
-from models.errors import InputError
 
 MODELS: tuple[str, ...] = ("neo_hookean", "stvk")
 

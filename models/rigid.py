@@ -14,64 +14,40 @@ and body share one time-discrete momentum balance:
     both:  c_{n+1} = c_pred + beta h^2 a_{n+1},  w_{n+1} = w_n + h ((1-gamma) a_n + gamma a_{n+1}),
            a_{n+1} = g - R_{n+1} / m.
 
-(body.py uses the same predictors, so a free fall of ball and body agree to round-off: implicit
-Euler gives ``c_n = c_0 + w_0 t_n + g h^2 n (n + 1)/2``, Newmark the exact parabola.)
-
-Two-way coupling within a step. Ball and body together minimise one incremental potential
-``Pi_body(u; c) + m/(2 beta h^2) |c - c_pred|^2 - m g.c``; the contact energy couples ``u`` and
-``c``. A plain explicit staggering (move the ball with the previous step's force, then solve
-the body) is only conditionally stable: its error is amplified by ``beta h^2 K / m`` per step,
-``K ~ k * contact area`` the penalty stiffness, which is >> 1 for the stiff penalties that
-keep penetration small (e.g. k = 5e7 Pa/m on 0.03 m^2, m = 5 kg, h = 10 ms: 3e3), so the ball
-sinks into the body or is shot out. Here each step instead solves the interface equation
+Two-way coupling within a step (iterated by :class:`solvers.coupling.BallCoupling`). Ball
+and body together minimise one incremental potential
+``Pi_body(u; c) + m/(2 beta h^2) |c - c_pred|^2 - m g.c``; the contact energy couples ``u``
+and ``c``. A plain explicit staggering (move the ball with the previous step's force, then solve the
+body) is only conditionally stable: its error is amplified by ``beta h^2 K / m`` per step (``K ~
+k * contact area``, >> 1 for stiff penalties). Here each step instead solves the interface
+equation
 
     r(c) = c - c_pred - beta h^2 (g - R(c, u(c)) / m) = 0,
 
-where ``u(c)`` is the body's converged step with the sphere at ``c`` (an implicit update of
-the ball with the contact stiffness, partitioned: the body Newton is unchanged). ``r`` is
-solved by Broyden's (good) quasi-Newton method (Broyden 1965; the interface quasi-Newton of
-partitioned fluid-structure solvers, Degroote et al. 2009), starting from the Jacobian
-``J_0 = I + beta h^2 K_rigid / m`` with ``K_rigid = dR/dc`` at fixed body
-(:meth:`PenaltyContact.center_stiffness_forms`). ``K_rigid`` over-estimates the stiffness of
-the compliant body, so the first steps are short but never overshoot; the secant updates fix
-the stiffness along the iteration. The loop stops when ``max |r| <= rtol * radius``; before
-contact ``R = 0`` and one body solve is enough. Iterations are recorded per step.
+where ``u(c)`` is the body's converged step with the sphere at ``c``, by Broyden's method
+(Broyden 1965; Degroote et al. 2009) from ``J_0 = I + beta h^2 K_rigid / m``, ``K_rigid =
+dR/dc`` at fixed body (:meth:`PenaltyContact.center_stiffness_forms`), until ``max |r| <= rtol
+* radius``.
 
-Momentum bookkeeping (:class:`Ledger`): the ball's velocity is updated with the *same*
-``R_{n+1}`` that the body's last solve felt (the last iterate), so the momentum exchanged is
-exact up to the body's Newton tolerance even when the interface iteration stops at its
-tolerance (the position mismatch ``|r|`` is the only inexactness). Per step the impulse of a
-force is ``h ((1 - gamma) F_n + gamma F_{n+1})``, the scheme's own quadrature; the body's
-discrete momentum ``P = int rho v dX`` changes by ``M g h`` + the impulses of all its contacts
-(test function = a constant vector, the partition of unity). So
+Momentum bookkeeping: :class:`Ledger`.
 
-    impulse on the balls  = m (w - w_0) - m g t - guide  = - sum_steps h R
-    impulse on the body   = P - P_0 - M g t - ground     = + sum_steps h R
+A guided ball (``RigidBallOptions.guide``) is held in the guided components (a = w = 0; the
+guide's reaction ``-(m g + F)`` there is booked as ``guide``).
 
-and their sum is zero to solver tolerance. "Ground" is every support of the body: its other
-contacts (``Body.reaction_force``) and its pins (``Body.pin_reaction``, the residual at the
-pinned dofs).
-
-A ball may be guided (``RigidBallOptions.guide``): its motion in the guided components is
-held (a = w = 0 there; the guide's reaction ``-(m g + F)`` in those components is booked as
-``guide``).
-
-Not modelled: friction, rotation of the balls (frictionless contact exerts no torque on a
-sphere), ball-ball contact.
+Not modelled: friction, rotation of the balls, ball-ball contact.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from models.backend import MPI, dolfinx, global_scalar
-from models.contact import ContactOptions, _vector3
-from models.errors import InputError, SolverError
+from meshes.errors import InputError
+from models.backend import MPI, dolfinx
+from models.contact import ContactOptions, vector3
 
 SCHEMES: dict[str, tuple[float, float, float]] = {
     "implicit_euler": (1.0, 1.0, 0.0),
@@ -123,8 +99,8 @@ class RigidBallOptions:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0.0):
                 raise InputError(f"ball.{name} must be > 0, got {value}")
-        object.__setattr__(self, "center", _vector3("ball.center", self.center))
-        object.__setattr__(self, "velocity", _vector3("ball.velocity", self.velocity))
+        object.__setattr__(self, "center", vector3("ball.center", self.center))
+        object.__setattr__(self, "velocity", vector3("ball.velocity", self.velocity))
         if any(self.velocity[k] != 0.0 for k in guide):
             raise InputError(f"ball.velocity must be 0 in the guided components {guide}, got "
                              f"{self.velocity}")
@@ -254,32 +230,6 @@ def impulse(old: np.ndarray, new: np.ndarray, h: float, dynamics: str) -> np.nda
     return h * ((1.0 - gamma) * np.asarray(old) + gamma * np.asarray(new))
 
 
-def broyden_solve(residual: Any, x0: np.ndarray, J0: Any, tol: float,
-                  max_iterations: int) -> tuple[np.ndarray, int, float]:
-    """Solve ``residual(x) = 0`` (x flat) by Broyden's good method from Jacobian ``J0``.
-
-    ``J_{k+1} = J_k + (dr - J_k dx) dx^T / (dx . dx)`` (Broyden 1965). ``J0`` is a matrix or a
-    callable ``J0(x0, r0)`` evaluated after the first residual (e.g. a stiffness assembled at
-    the first body solve).
-
-    Returns:
-        ``(x, iterations, max |r|)`` of the last residual evaluated; ``x`` is the point where
-        the last residual was evaluated (converged or not: the caller checks ``max |r|``).
-
-    """
-    x = np.array(x0, dtype=float)
-    r = residual(x)
-    J = J0(x, r) if callable(J0) else np.array(J0, dtype=float)
-    k = 1
-    while np.max(np.abs(r)) > tol and k < max_iterations:
-        dx = -np.linalg.solve(J, r)
-        x_new = x + dx
-        r_new = residual(x_new)
-        J = J + np.outer(r_new - r - J @ dx, dx) / float(dx @ dx)
-        x, r, k = x_new, r_new, k + 1
-    return x, k, float(np.max(np.abs(r)))
-
-
 # --------------------------------------------------------------------------------------------
 # Two-way coupling with the body
 
@@ -296,6 +246,21 @@ def initial_state(balls: tuple[RigidBallOptions, ...], gravity: np.ndarray) -> B
 @dataclass
 class Ledger:
     """Cumulative momentum bookkeeping since t = 0 (all (3,) vectors, SI units).
+
+    The ball's velocity is updated with the *same*
+    ``R_{n+1}`` that the body's last solve felt (the last iterate), so the momentum exchanged is
+    exact up to the body's Newton tolerance even when the interface iteration stops at its
+    tolerance (the position mismatch ``|r|`` is the only inexactness). Per step the impulse of a
+    force is ``h ((1 - gamma) F_n + gamma F_{n+1})``, the scheme's own quadrature; the body's
+    discrete momentum ``P = int rho v dX`` changes by ``M g h`` + the impulses of all its contacts
+    (test function = a constant vector, the partition of unity). So
+
+        impulse on the balls  = m (w - w_0) - m g t - guide  = - sum_steps h R
+        impulse on the body   = P - P_0 - M g t - ground     = + sum_steps h R
+
+    and their sum is zero to solver tolerance. "Ground" is every support of the body: its other
+    contacts (``Body.reaction_force``) and its pins (``Body.pin_reaction``, the residual at the
+    pinned dofs).
 
     Attributes:
         contact_impulse: Impulse of the balls' contacts on the body ``sum h R`` [N s]
@@ -335,212 +300,6 @@ class RigidStepInfo:
     mismatch: float
     penetration: tuple[float, ...]
     report: Any
-
-
-class BallCoupling:
-    """Rigid balls stepped together with a body whose contacts ``first..first+N-1`` are theirs.
-
-    Args:
-        body: The body (``models.body.Body``); its ``options.contacts[first + i]`` is the
-            sphere of ball ``i`` (:meth:`RigidBallOptions.contact`), the other contacts and
-            the pins count as ground in the :class:`Ledger`.
-        options: The balls and the coupling iteration.
-        first: Index of the first ball's contact in the body's contacts.
-
-    """
-
-    def __init__(self, body: Any, options: RigidOptions, first: int) -> None:
-        if not options.balls:
-            raise InputError("rigid: no balls")
-        self.body, self.options = body, options
-        self.dynamics = body.options.dynamics
-        scheme(self.dynamics)
-        self.indices = list(range(first, first + len(options.balls)))
-        self.others = [i for i in range(len(body.contacts)) if i not in self.indices]
-        self.mass = np.array([b.total_mass for b in options.balls])
-        self.radius = np.array([b.radius for b in options.balls])
-        self.free = np.array([b.free for b in options.balls])
-        self.gravity = np.asarray(body.options.gravity, dtype=float)
-        self.state = initial_state(options.balls, self.gravity)
-        self._stiffness = [[[dolfinx.fem.form(f) for f in row]
-                            for row in body.contacts[i].center_stiffness_forms(body.u)]
-                           for i in self.indices]
-        rho, dx = body.material.density, body.dx
-        self._momentum = [dolfinx.fem.form(rho * body.v[k] * dx) for k in range(3)]
-        self.body_mass = global_scalar(dolfinx.fem.form(rho * dx))
-        self._surface = BoundaryFacets(body)
-        self.ledger = Ledger()
-        self.start()
-
-    # --- state --------------------------------------------------------------------------------
-
-    def start(self) -> None:
-        """Begin the ledger and the forces at the body's current state (a new run)."""
-        self.set_centers(self.state.center)
-        self.body.initial_acceleration()  # Newmark: a_0 enters the pins' initial reaction
-        self.state.force = -self.reactions()
-        self.state.acceleration = self.acceleration(self.state.force)
-        self.ledger = Ledger(ground_force=self.ground_force(),
-                             body_momentum0=self.body_momentum(),
-                             ball_momentum0=self.ball_momentum(), time0=self.body.t)
-
-    def set_centers(self, centers: np.ndarray) -> None:
-        """Move every ball's sphere obstacle (takes effect at the next body solve)."""
-        for i, c in zip(self.indices, np.reshape(centers, (-1, 3)), strict=True):
-            self.body.set_sphere_center(c, i)
-
-    def acceleration(self, force: np.ndarray) -> np.ndarray:
-        """Return ``a = g + F/m`` in the free components, 0 in the guided ones, (N, 3)."""
-        return np.asarray(self.free * (self.gravity + force / self.mass[:, None]))
-
-    def guide_force(self, force: np.ndarray) -> np.ndarray:
-        """Return the guides' summed force on the balls [N]: ``-(m g + F)`` where guided."""
-        total = (1.0 - self.free) * (self.mass[:, None] * self.gravity + force)
-        return np.asarray(-total.sum(axis=0))
-
-    def reactions(self) -> np.ndarray:
-        """Force of each ball on the body ``R_i`` at the current state [N], (N, 3)."""
-        return np.array([self.body.reaction_force(i) for i in self.indices])
-
-    def ground_force(self) -> np.ndarray:
-        """Return the force of the supports on the body [N]: other contacts and pins."""
-        contacts = sum((self.body.reaction_force(i) for i in self.others), np.zeros(3))
-        return np.asarray(contacts + self.body.pin_reaction())
-
-    def body_momentum(self) -> np.ndarray:
-        """``int rho v dX`` [kg m/s]."""
-        return np.array([global_scalar(f) for f in self._momentum])
-
-    def ball_momentum(self) -> np.ndarray:
-        """``sum_i m_i w_i`` [kg m/s]."""
-        return np.asarray(self.mass @ self.state.velocity, dtype=float)
-
-    def stiffness(self) -> np.ndarray:
-        """Block-diagonal ``dR/dc`` at fixed body [N/m], (3N, 3N)."""
-        n = len(self.indices)
-        K = np.zeros((3 * n, 3 * n))
-        for b, forms in enumerate(self._stiffness):
-            K[3 * b:3 * b + 3, 3 * b:3 * b + 3] = [[global_scalar(f) for f in row]
-                                                   for row in forms]
-        return K
-
-    def penetration(self) -> tuple[float, ...]:
-        """``max(0, r - dist(c, surface)) / r`` of each ball [-] (collective)."""
-        return tuple(self._surface.penetration(self.state.center, self.radius).tolist())
-
-    # --- the coupled step -----------------------------------------------------------------------
-
-    def step(self) -> RigidStepInfo:
-        """Advance balls and body by ``body.options.dt`` (interface iteration, module doc).
-
-        Raises:
-            SolverError: the body step failed, or the interface iteration did not reach its
-                tolerance in ``max_iterations`` body solves; body state restored.
-
-        """
-        h, body, old = self.body.options.dt, self.body, self.state
-        self.set_centers(old.center)
-        body.initial_acceleration()  # Newmark a_0 with the balls where they are
-        saved = body.snapshot()
-        beta, _, _ = scheme(self.dynamics)
-        c_pred = predict(old, h, self.dynamics)
-        scale = beta * h * h / np.repeat(self.mass, 3)
-        last: dict[str, Any] = {}
-
-        def residual(c: np.ndarray) -> np.ndarray:
-            self.set_centers(c)
-            body.restore(saved)
-            report = body.step()
-            if "report" in last:
-                report = dataclasses.replace(report, **{
-                    k: getattr(report, k) + getattr(last["report"], k)
-                    for k in ("newton_iterations", "halvings")})
-            last["report"] = report
-            last["R"] = self.reactions()
-            a = self.acceleration(-last["R"])
-            return np.asarray(c - (c_pred + beta * h * h * a).reshape(-1))
-
-        def jacobian(c: np.ndarray, r: np.ndarray) -> np.ndarray:
-            free = self.free.reshape(-1)
-            return np.eye(c.size) + (scale * free)[:, None] * self.stiffness() * free
-
-        guess = (c_pred + beta * h * h * old.acceleration).reshape(-1)
-        tol = self.options.coupling.rtol * float(self.radius.min())
-        try:
-            _, k, mismatch = broyden_solve(residual, guess, jacobian, tol,
-                                           self.options.coupling.max_iterations)
-        except np.linalg.LinAlgError:
-            k, mismatch = 0, math.inf  # a singular secant Jacobian: report as not converged
-        if mismatch > tol:
-            body.restore(saved)
-            self.set_centers(old.center)
-            raise SolverError(f"rigid coupling: ball position mismatch {mismatch:.3e} m > "
-                              f"{tol:.3e} m after {k} body solves at t={body.t:.6g}")
-        force = -last["R"]
-        self.state = advance(old, c_pred, self.acceleration(force), force, h, self.dynamics)
-        self._book(old, h)
-        return RigidStepInfo(k, mismatch, self.penetration(), last["report"])
-
-    def _book(self, old: BallState, h: float) -> None:
-        """Add the step's contact and ground impulses to the ledger."""
-        ground = self.ground_force()
-        led = self.ledger
-        led.contact_impulse += impulse(-old.force.sum(axis=0), -self.state.force.sum(axis=0),
-                                       h, self.dynamics)
-        led.ground_impulse += impulse(led.ground_force, ground, h, self.dynamics)
-        led.ground_force = ground
-        led.guide_impulse += impulse(self.guide_force(old.force),
-                                     self.guide_force(self.state.force), h, self.dynamics)
-
-    def balance(self) -> dict[str, list[float]]:
-        """Momentum balance since the ledger's start (module docstring), (3,) lists [N s].
-
-        ``ball_impulse`` (from the balls' momenta) and ``body_impulse`` (from the body's
-        momentum, gravity and ground removed) should be opposite; ``contact_impulse`` is
-        the bookkept ``sum h R``.
-        """
-        led, t = self.ledger, self.body.t - self.ledger.time0
-        ball = (self.ball_momentum() - led.ball_momentum0 - self.mass.sum() * self.gravity * t
-                - led.guide_impulse)
-        body = (self.body_momentum() - led.body_momentum0 - self.body_mass * self.gravity * t
-                - led.ground_impulse)
-        return {"ball_impulse": ball.tolist(), "body_impulse": body.tolist(),
-                "contact_impulse": led.contact_impulse.tolist(),
-                "ground_impulse": led.ground_impulse.tolist(),
-                "guide_impulse": led.guide_impulse.tolist()}
-
-    # --- checkpoint -----------------------------------------------------------------------------
-
-    def arrays(self) -> dict[str, np.ndarray]:
-        """Return the balls' state and ledger as named arrays (checkpoint stage ``rigid``)."""
-        led = self.ledger
-        return {"center": self.state.center, "velocity": self.state.velocity,
-                "acceleration": self.state.acceleration, "force": self.state.force,
-                "contact_impulse": led.contact_impulse, "ground_impulse": led.ground_impulse,
-                "ground_force": led.ground_force, "body_momentum0": led.body_momentum0,
-                "ball_momentum0": led.ball_momentum0, "guide_impulse": led.guide_impulse,
-                "time0": np.array([led.time0])}
-
-    def restore(self, arrays: dict[str, np.ndarray]) -> None:
-        """Set the balls' state and ledger from :meth:`arrays` (e.g. a checkpoint).
-
-        Raises:
-            InputError: an array is missing or of the wrong shape.
-
-        """
-        n = len(self.indices)
-        try:
-            state = [np.array(arrays[k], dtype=float).reshape(n, 3)
-                     for k in ("center", "velocity", "acceleration", "force")]
-            led = {k: np.array(arrays[k], dtype=float).reshape(3)
-                   for k in ("contact_impulse", "ground_impulse", "ground_force",
-                             "body_momentum0", "ball_momentum0", "guide_impulse")}
-            time0 = float(np.asarray(arrays["time0"]).reshape(-1)[0])
-        except (KeyError, ValueError) as exc:
-            raise InputError(f"checkpoint: rigid ball state unusable ({exc})") from None
-        self.state = BallState(*state)
-        self.ledger = Ledger(**led, time0=time0)
-        self.set_centers(self.state.center)
 
 
 class BoundaryFacets:
@@ -609,6 +368,6 @@ def segment_distance(p: np.ndarray, s: np.ndarray, e: np.ndarray) -> np.ndarray:
     return np.asarray(np.linalg.norm(p - (s + t[:, None] * d), axis=1))
 
 
-__all__ = ["BallCoupling", "BallState", "Ledger", "RigidBallOptions", "RigidCouplingOptions",
-           "RigidOptions", "RigidStepInfo", "advance", "broyden_solve", "impulse",
+__all__ = ["BallState", "Ledger", "RigidBallOptions", "RigidCouplingOptions",
+           "RigidOptions", "RigidStepInfo", "advance", "impulse",
            "initial_state", "point_triangle_distance", "predict", "scheme"]

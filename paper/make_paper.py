@@ -11,8 +11,8 @@
    too; ``--no-external``: never);
 2. reads the optional sources (``DIR/data/wavelength.json``, ``DIR/data/artefacts.json``,
    ``benchmarks/results/{speed_accuracy,decomposition*,shell_kernels,shell_solve,scaling*,
-   iterative_*conv*}.json``): each gives a Markdown table in ``DIR/tables/`` and a section of the paper, or
-   the words "not run" and the command that produces it (``--strict``: an error);
+   iterative_*conv*}.json``): each gives a Markdown table in ``DIR/tables/`` and a section of the
+   paper, or the words "not run" and the command that produces it (``--strict``: an error);
 3. fills ``paper/paper.md.in``: ``{{source.key.path:format}}`` is a number read from the JSON
    of ``source`` (keys separated by dots, list indices as integers, ``format`` a Python format
    spec), ``{{block:name}}`` a generated table / figure / section. No number of the text is

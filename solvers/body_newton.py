@@ -17,13 +17,9 @@ Line search (``NewtonOptions.line_search_type``):
   leaves the admissible set ``J > 0``. Near the solution the Newton decrease
   ``s/2 ~ |r|^2 / k`` falls below the round-off of the assembled energy (which is
   ``~1e-16 * sum |psi| dX``, e.g. ``(mu + lambda) |Omega|``, not ``1e-16 |Pi|``), and a strict
-  Armijo test then stalls. PETSc's ``bt`` on the objective stalls exactly so (measured,
-  dolfinx 0.11 / PETSc 3.25: the P1 manufactured problem of ``tests/test_body_convergence.py``
-  at n = 8 ends with SNES reason -5 after 50 iterations at |r| = 1.2e-7 where this search
-  converges in 0.6 s; 100 implicit-Euler steps of the free block of
-  ``tests/test_body_dynamics.py`` take 2749 iterations and 49 step halvings with ``bt``,
-  200 iterations and none with this search). So when ``|Pi(u + l du) - Pi(u)| <= eps_Pi`` with
-  ``eps_Pi = energy_roundoff * (|Pi(u)| + energy_scale)`` (energy indistinguishable from
+  Armijo test then stalls (so does PETSc's ``bt``: docs/notes/body-line-search.md). So
+  when ``|Pi(u + l du) - Pi(u)| <= eps_Pi`` with ``eps_Pi = energy_roundoff * (|Pi(u)| +
+  energy_scale)`` (energy indistinguishable from
   noise), the step is accepted iff the residual norm decreases.
 * ``"petsc_bt"``: PETSc's ``bt`` search on the same objective (``SNESSetObjective``).
 
@@ -45,11 +41,12 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from meshes.errors import InputError
 from models.backend import (
     PETSc,
     dolfinx,
@@ -58,7 +55,7 @@ from models.backend import (
     quadrature_expression,
     ufl,
 )
-from models.errors import InputError
+from models.quadratic import QuadraticTerm
 
 _COUNTER = itertools.count()
 
@@ -85,6 +82,8 @@ class NewtonOptions:
             and retried before ``SolverError`` is raised.
         linear_solver: Direct solver package for the Newton systems: ``"mumps"`` or
             ``"superlu_dist"`` (LU, in the wheel).
+        petsc: PETSc options of the SNES / KSP / PC, set after the ones these fields stand
+            for (:meth:`petsc_options`), e.g. ``{"ksp_type": "gmres", "pc_type": "hypre"}``.
 
     """
 
@@ -99,6 +98,7 @@ class NewtonOptions:
     max_backtracks: int = 40
     max_halvings: int = 8
     linear_solver: str = "mumps"
+    petsc: dict[str, str | int | float | bool] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         for name in ("rtol", "atol", "stol", "armijo_c1", "energy_roundoff"):
@@ -136,6 +136,7 @@ class NewtonOptions:
             "ksp_type": "preonly",
             "pc_type": "lu",
             "pc_factor_mat_solver_type": self.linear_solver,
+            **self.petsc,
         }
 
 
@@ -165,37 +166,6 @@ class NewtonResult:
         return (f"SNES reason={self.reason}, iterations={self.iterations}, "
                 f"residual={self.residual_norm:.3e}, energy={self.energy:.6e}, "
                 f"min det F={self.min_det_f:.3e}")
-
-
-@dataclass(frozen=True)
-class QuadraticTerm:
-    """An extra energy ``E(u) = 1/2 u^T K u - c^T u + e0`` of the Newton problem.
-
-    Attributes:
-        K: symmetric PETSc matrix in the (global) dof layout of ``u`` (its Hessian).
-        c: PETSc vector in the same layout (``-c`` is its gradient at ``u = 0``).
-        e0: constant energy [J] (makes ``E`` the physical value, e.g. ``k_P |H d|^2``).
-
-    """
-
-    K: Any
-    c: Any
-    e0: float = 0.0
-
-    def value(self, u: Any) -> float:
-        """``1/2 u^T K u - c^T u + e0`` for a PETSc vector ``u`` (collective)."""
-        Ku = self.K.createVecLeft()
-        self.K.mult(u, Ku)
-        value = 0.5 * float(Ku.dot(u).real) - float(self.c.dot(u).real) + self.e0
-        Ku.destroy()
-        return value
-
-    def gradient(self, u: Any) -> Any:
-        """Return a new PETSc vector ``K u - c`` (collective)."""
-        g = self.K.createVecLeft()
-        self.K.mult(u, g)
-        g.axpy(-1.0, self.c)
-        return g
 
 
 def bc_rows(bcs: list[Any], u: Any) -> np.ndarray:

@@ -40,8 +40,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
+from meshes.errors import InputError
 from models.backend import PETSc
-from models.errors import InputError
 
 BACKENDS: tuple[str, ...] = ("mumps", "superlu_dist", "petsc", "scipy")
 FACTORIZATIONS: tuple[str, ...] = ("cholesky", "ldlt", "lu")
@@ -92,42 +92,18 @@ class LinearSolverOptions:
             (upper block triangle, bs = 3; mumps cholesky / ldlt only: PETSc's own SBAIJ
             Cholesky cannot reorder).
         ordering: Fill-reducing ordering; "" picks :func:`default_ordering` (METIS for MUMPS,
-            i.e. ICNTL(7) = 5, nested dissection for petsc, MMD_AT_PLUS_A for superlu_dist and
-            MMD_AT_PLUS_A for scipy). METIS is the default because it gives the fewest
-            factorisation flops (MUMPS RINFOG(3), machine independent) on the shell Hessian
-            (icosphere, membrane + bending + diagonal penalty, session 2): 4.5e9 at 10k
-            vertices vs SCOTCH 5.0e9, PORD 5.9e9, AMF 7.0e9, AMD / QAMD 9.0e9; 3.8e10 at 40k vs
-            SCOTCH 4.2e10, PORD 4.8e10; the refactorisation times follow the flops.
-            ICNTL(15) (blocked analysis), ICNTL(58) = 1 / 2 (symbolic method) and ICNTL(8) = 0
-            (no scaling) left the factor unchanged and gave no measurable gain. Session 5,
-            the augmented LDL^T of scenes/default.toml's first frame (2610 vertices, 254
-            clusters; 8592 rows), median refactorisation: METIS 46.5 ms (1.82e6 factor
-            entries), SCOTCH 49.2, PORD 52.0, AMD / QAMD 86, AMF 141, LU (METIS) 83; BLR
-            off the same (fronts too small); two OpenMP threads 48.4 ms.
+            ICNTL(7) = 5; nested dissection for petsc; MMD_AT_PLUS_A for superlu_dist, scipy).
         mumps_icntl: Extra MUMPS ``(index, value)`` integer controls, applied last.
-        mumps_blr: MUMPS block low-rank factorisation (ICNTL(35) = 1; False = full rank). On
-            by default: the fastest option measured (session 2, icosphere shell Hessian,
-            membrane + bending + diagonal penalty, MUMPS METIS Cholesky, process CPU time of
-            the refactorisation on the shared machine): 10k vertices 0.308 s vs 0.381 s full
-            rank (0.81x), 40k 1.46 s vs 2.85 s (0.51x; targets 1.3 x CHOLMOD = 0.455 / 2.99 s);
-            the gain grows with the front sizes, i.e. with the mesh. Factor entries stored
-            (INFOG(35)) -15 % at 10k, -28 % at 40k (3.10e7 vs 4.28e7), MUMPS memory 395 vs
-            456 MB at 40k. The price is accuracy: true residual 6e-12 (10k) / 8e-12 (40k)
-            instead of 3e-16 at the default tolerance 1e-10; Newton converges in the same
-            iterations to the same point (tests/test_linear_solvers.py, even at 1e-6).
-            Small systems (fronts below MUMPS's BLR block size, < ~3k vertices) are
-            factorised exactly whatever this flag says. False gives the exact factor.
+        mumps_blr: MUMPS block low-rank factorisation (ICNTL(35) = 1; False = full rank);
+            systems below ~3k vertices are factorised exactly whatever it says.
         mumps_blr_tolerance: BLR dropping tolerance CNTL(7) (relative, dimensionless); the
-            true residual of a solve is about 0.1 x this value (measured above).
-        mumps_refinement: Maximum iterative refinement steps per solve (ICNTL(10); 0 = off).
-            MUMPS stops once the backward error is below CNTL(2) = sqrt(eps), so it only acts
-            when the factor is inexact (BLR tolerance above ~1e-8): BLR at 1e-6 with 3 steps
-            gives a true residual of 3e-13 at 10k vertices (vs ~1e-8 without).
+            true residual of a solve is about 0.1 x this value.
+        mumps_refinement: Maximum iterative refinement steps per solve (ICNTL(10); 0 = off);
+            acts only when the factor is inexact (BLR tolerance above ~1e-8).
         mumps_out_of_core: Write the factors to disk (ICNTL(22) = 1, directory
-            ``$MUMPS_OOC_TMPDIR``, default /tmp; the files are removed with the factor). The
-            memory knob for the largest shells: MUMPS memory INFOG(21) 97 -> 32 MB at 10k
-            vertices (43 MB with BLR 1e-10), same factor and residual; the solve then reads
-            the factors back (page cache permitting).
+            ``$MUMPS_OOC_TMPDIR``, default /tmp; removed with the factor).
+
+    Measured choices of these defaults: docs/notes/linear-solver-defaults.md.
 
     """
 
@@ -188,27 +164,8 @@ class ShiftOptions:
 
     Attributes:
         initial: First shift relative to the mean absolute diagonal (dimensionless).
-        growth: Factor between consecutive shifts (> 1). The textbook 10 is the default
-            (the unit and decomposition tests pin minima reached along its paths); the
-            quality presets (:mod:`wrinkles.presets`) and the wrinkle scenes select 5 with
-            ``ShellNewtonOptions.shift_decay = 2`` and ``max_shifts = 20``: a shift up to
-            ``growth`` times larger than the smallest one that makes ``A + tau I`` positive
-            definite shortens the step in every soft direction, and far from a wrinkled
-            minimum the shell Newton takes dozens of such steps. Measured
-            (``python benchmarks/shift_schedule.py``, benchmarks/results/shift_schedule.json,
-            shell Newton wall time of whole runs, 2026-11-25, load ~2): growth / decay
-            10 / 10 -> 5 / 2 takes scenes/default.toml from 272 to 169 iterations (528 ->
-            253 factorisations) and 27.1 to 13.0 s, bent_bar 23.0 -> 14.4 s,
-            twisted_cylinder 27.8 -> 18.3 s (the three: 78.0 -> 45.7 s); 6 / 2 50.2 s,
-            3 / 3 52.7 s, 4 / 4 53.6 s, 8 / 3 (IPOPT's factors) 55.1 s, 4 / 2 55.5 s,
-            3 / 1.5 64.0 s, 2 / 1.5 69.6 s. The easy frames of scenes/ball_sofa_coarse.toml
-            would pay for it (14.7 -> 18.1 s, 45 -> 52 iterations), so that scene keeps
-            10 / 10. A path of other step lengths may settle in another wrinkle branch: on
-            the plate of tests/test_shift_schedule.py 5 / 2 reaches W = 4.72421 in 34
-            iterations where 10 / 10 reaches 4.75496 in 80. Near a minimum the gain goes: the
-            warm-started 160k frame of benchmarks/iterative.py (exact Hessian,
-            multigrid-fast-ew) takes 8 Newton iterations and 40.7 s CPU with 5 / 2 against 6
-            and 33.5 s.
+        growth: Factor between consecutive shifts (> 1). The textbook 10 is the default; the
+            quality presets and wrinkle scenes select 5 (docs/notes/shift-schedule.md).
         max_shifts: Number of shifted attempts before giving up (>= 1): the largest shift is
             ``initial * growth^(max_shifts - 1)`` x the mean diagonal (1e7 with the defaults;
             20 attempts at growth 5 reach 1.9e7).

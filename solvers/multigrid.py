@@ -1,125 +1,38 @@
 """Geometric multigrid on the subdivision hierarchy: preconditioned CG for the shell Newton system.
 
-The shell is built by subdividing a coarse triangle mesh ``L`` times (MISSION.md section 4,
-:mod:`models.embedding.subdivision`): ``V_{l+1} = S_l V_l``. Those matrices are the
-prolongations of a geometric multigrid (Briggs, Henson & McCormick, A Multigrid Tutorial,
-2nd ed., ch. 3 and 8): acting on the flat dof vector (dof ``3 i + k``) a level's prolongation is
-``P_l = S_l (x) I_3``, and the level operators are Galerkin products
+The shell is the coarse surface subdivided ``L`` times (:mod:`models.embedding.subdivision`),
+``V_{l+1} = S_l V_l``; those matrices are the prolongations of a geometric multigrid (Briggs,
+Henson & McCormick, A Multigrid Tutorial, 2nd ed., ch. 3 and 8). On the flat dof vector
+(dof ``3 i + k``) ``P_l = S_l (x) I_3`` and the level operators are Galerkin products
 
     A_l = P_l^T A_{l+1} P_l            (PETSc MatPtAP, the symbolic product reused),
 
-so the coarse problems are the variational restrictions of the fine one and the two-grid
-error propagation ``(I - P A_c^{-1} P^T A)`` is an A-orthogonal projection. Linear subdivision
-reproduces every field that is linear in the coarse positions (the rigid and the uniform
-stretch modes of the membrane) exactly.
+so the two-grid error propagation ``(I - P A_c^{-1} P^T A)`` is an A-orthogonal projection;
+linear subdivision reproduces the rigid and uniform-stretch modes exactly.
 
-The penalty ``k_P ||H (x - y)||^2`` enters the Newton matrix as the low-rank ``G^T G``
-(``G = sqrt(2 k_P) H (x) I_3``, :mod:`models.shell.penalty`), whose assembled form fills in
-(every pair of vertices sharing a cluster). It is never assembled on the fine levels: each level
-operator is ``A_l + G_l^T G_l`` applied matrix-free (a PETSc ``MatPython``: one sparse product
-with ``A_l`` and two with ``G_l = G_{l+1} P_l``, a constant chain), whose diagonal
-``diag(A_l) + colsum(G_l^2)`` feeds the Jacobi smoother. Only the coarsest level is assembled,
-``A_0 + G_0^T G_0``, and factorised by MUMPS Cholesky (analysis reused).
+The penalty enters as the low-rank ``G^T G`` (``G = sqrt(2 k_P) H (x) I_3``,
+:mod:`models.shell.penalty`) and is never assembled on the fine levels: a level operator is
+``A_l + G_l^T G_l`` applied matrix-free (``G_l = G_{l+1} P_l``), with the diagonal
+``diag(A_l) + colsum(G_l^2)`` for the Jacobi smoother. The coarsest level ``A_0 + G_0^T G_0``
+is assembled and factorised by MUMPS Cholesky (analysis reused).
 
-Smoother: Chebyshev (degree ``smoother_degree``) on Jacobi, eigenvalue bounds
-``[0.1, 1.1] lambda_max`` estimated by PETSc. The Krylov method is CG (the Newton matrix must
-be SPD: use the PSD Hessian modes "gauss_newton" / "projected" or the mixed far-field mode),
-with PETSc's residual norm set to the *unpreconditioned* recursive residual; after the solve
-the true relative residual ``||b - A x|| / ||b||`` is recomputed with scipy and is the
-acceptance test (MISSION.md section 6: iterative solvers stall on bending, check true
-residuals). With the exact Hessian an indefinite Newton matrix makes CG break down
-(``KSP_DIVERGED_INDEFINITE_MAT``) or return a non-descent direction: the solve then falls back
-to the direct factorisation (when enabled), which reports the inertia, and the shell Newton
-moves on to a shifted Hessian; with ``fallback = False`` the failed CG alone sends the shell
-Newton to the next shift (no factorisation of the fine matrix at all).
-
-Cost per set-up and per CG iteration (what a Newton iteration pays besides the evaluation):
-
-* the Galerkin products reuse their symbolic part (``MatPtAP`` with ``MAT_REUSE_MATRIX``), the
-  coarse factorisation its MUMPS analysis (same pattern: numeric refactorisation only);
-* ``eigen_estimate = "solve"`` keeps the Chebyshev bounds of the first set-up of a Newton
-  solve (10 GMRES steps per level saved per set-up); the Jacobi diagonals follow every new
-  matrix (a ``PCPython`` reading the level operator's diagonal). A CG failure with bounds
-  from an earlier Newton iteration re-estimates and retries once (see :meth:`solve`);
-* ``level_format = "sbaij"`` multiplies with a symmetric 3 x 3 block copy of ``A_l`` (upper
-  triangle), about 40 % of the bytes of the AIJ product the memory-bound smoother streams;
-* the penalty ``G_l^T (G_l x)`` is two PETSc products into a preallocated work vector.
-
-Measured (tests/test_multigrid.py, Gauss-Newton Hessian of a 7 %-compressed plate, 6 x 6
-coarse grid): CG to true residual 1e-8 in 15 / 20 / 21 iterations at 625 / 2401 / 9409
-vertices (2 / 3 / 4 levels; Jacobi-CG: 470 / 883 / 1284), i.e. a mild growth (iterations ~
-n^0.12), not level-independent: linear prolongation is not H^2-accurate for the bending part.
-benchmarks/iterative.py (shared, contended machine, process CPU time per Newton iteration):
-40k vertices direct 2.19 s, multigrid 1.33 s (same gradient history to 3.4e-6), 160k
-multigrid 6.3 s (31 CG iterations per solve), multigrid + Eisenstat-Walker 2.4 s (session 2).
-Session 3, 160k, load about 5 (benchmarks/results/iterative_160k_flat.json, Gauss-Newton, 3
-iterations from the flat start): default options 5.30 s (CG 4.13 s), Eisenstat-Walker 2.68 s
-(CG 1.10 s), the same 21 CG iterations with ``eigen_estimate = "solve"``, ``level_format =
-"sbaij"`` 2.58 s (CG 0.63 s: 0.157 -> 0.089 s per CG iteration), the evaluation 0.5-1.0 s.
-On a warm-started frame with the exact Hessian (iterative_160k_conv.json, to 1e-8 ||g_0||)
-the multigrid keeps the direct solve's 6 Newton iterations and minimiser (energy 4e-15,
-vertices 9e-11) but its CG needs 80-121 iterations per solve near the wrinkled minimum
-(33-35 at 10k): 5.1 s per Newton iteration (Eisenstat-Walker) against 13.9 s direct. The soft
-wrinkle modes are oscillatory at the scale of the two finest levels, where linear
-subdivision prolongs them poorly. A W-cycle (iterative_160k_conv_w.json) halves the CG
-iterations (374 -> 193 for fixed 1e-4, same 6 Newton iterations, 5.8 s per iteration) but
-with Eisenstat-Walker it needs 8 Newton iterations (4.0 s each, 32 s in all against 30 s).
-The issue's 2 s per Newton iteration is not reached on that frame.
-
-Why, measured in session 4 on that frame (benchmarks/iterative.py, 160k, exact Hessian):
-the CG residual falls steadily by ~0.03 decades per iteration, and 200 CG steps on the last
-Newton system give Ritz values of the multigrid-preconditioned operator that fill
-[0.0014, 1] continuously (11 below 0.01, 21 below 0.03, 40 below 0.1, 74 below 0.3): a
-whole band of wrinkle modes is soft (compression balances bending) and oscillatory at the
-fine scale, like the near-kernel of a Helmholtz operator, so neither smoothing nor a coarse
-level reaches it. Tried and not adopted (CG iterations of the three longest solves, base
-82 / 43 / 89, and CPU per Newton iteration, base 5.5 s, machine load ~2): point-block 3 x 3
-Jacobi 71 / 50 / 67 (6.7 s), Chebyshev degree 3 73 / 36 / 62 (6.1 s), the interpolatory
-butterfly prolongation (exact for cubics, Hemker's order condition for a fourth-order
-operator) 77 / 51 / 71 (8.3 s, denser Galerkin levels), and deflated CG recycling 40 or 80
-Ritz vectors of the previous solves (at 40k: 162 -> 141 / 125 CG iterations, 1.5-1.9x the
-CPU time). On the flat start with the Gauss-Newton Hessian the same options need 58 CG
-iterations for 8 Newton iterations (see the README for the time per iteration).
-Session 5 (quiet machine): Loop-subdivision prolongations on the same (linearly subdivided)
-mesh, a C^2 box-spline coarse space for the bending part, cut the CG iterations of the 40k
-frame from 166 to 121 but the denser Galerkin levels raise the CPU per Newton iteration from
-0.88 to 1.32 s. A factorisation of an earlier Newton matrix as the CG preconditioner (what
-modified Newton reuses) fails: the frame's warm-start Hessian preconditioning the one at its
-minimiser leaves a true residual of 4e-2 after 300 CG iterations at 160k (the same matrix: 1
-iteration); the soft band moves within the frame. The refactorisation itself costs 8.1 s at
-160k (MUMPS LDL^T of the augmented system, BLR 1e-10; BLR 1e-4 saves 12 % at 40k).
-Session 6: the soft band is the *phase* of the wrinkles (a smooth envelope times the carrier's
-derivative), which a coarse space of hats times the wrinkle field's derivatives captures
-(:mod:`solvers.phase_space`, ``MultigridOptions.phase_space``): on the same frame 79 instead of
-241 CG iterations and 2.68 instead of 4.65 s CPU per Newton iteration (2.42 s with one
-Chebyshev step per level), the same 6 iterations and minimiser; with the penalty products on
-the vertex-level H (:class:`_LowRankOperator`) 2.43 s (rerun 2.39 s). The 2 s is still not
-reached (CG 1.1-1.2 s, evaluation 0.5 s, set-up 0.6 s per iteration). Tried and not adopted:
-keeping the coarse levels of an earlier Newton iteration while the shift is unchanged (the
-same 79 CG iterations, Galerkin products 0.21 -> 0.15 s per iteration, the whole iteration
-2.70 s against 2.39 s in the same run: within the run-to-run spread of the other parts).
-Session 7 (2026-11-26, another quiet 2-core machine; ``python benchmarks/iterative.py --sizes
-160k --hessian exact --to-tolerance 1e-8 --methods multigrid-phase-ew --repeat 2 --breakdown
---threads T``): the same frame, 79 CG iterations, 6 Newton iterations, minimiser within 1.6e-11
-of the direct one (direct 11.4 s per iteration on this machine). Before this session's changes
-1.989 s per iteration on one core. The SBAIJ level products are now a numba pass over the
-upper blocks (:class:`_SymmetricCopy`, 4.75 ms at 160k against 5.7 ms for PETSc's SBAIJ
-``MatMult``; no ``MatSetValuesBlocked`` copy per set-up): 1.976 s on one thread (CG 0.89 s,
-evaluation 0.48 s, phase space 0.27 s, Galerkin products 0.18 s). With ``threads = 2`` (and
-``ShellParams.threads = 2`` for the element kernels, :mod:`models.shell.schedule`): 1.49 s
-wall (2.36 s CPU) per Newton iteration -- CG 0.68 s, evaluation 0.24 s wall -- and 1.64 s in
-a second run (CG 0.75 s, evaluation 0.30 s); with one Chebyshev step per level 1.45 s (102 CG
-iterations). The level
-operator product 6.6 -> 4.3 ms, a V-cycle 45 -> 35 ms. The rest (the PETSc Galerkin products,
-``Z^T A Z``, the Chebyshev vector updates) stays on one core. Smaller frames gain less (the
-same command with ``--sizes 10k 40k``): 0.163 -> 0.150 s and 0.449 -> 0.384 s wall per Newton
-iteration (direct 0.31 / 1.70 s; 56 / 67 CG iterations, 7 Newton iterations like the direct
-solve).
+Smoother: Chebyshev (``smoother_degree``) on Jacobi, bounds ``[0.1, 1.1] lambda_max``
+estimated by PETSc (kept for a whole Newton solve with ``eigen_estimate = "solve"``). Krylov
+method: CG on the unpreconditioned residual; the true relative residual ``||b - A x|| / ||b||``
+is recomputed after the solve and is the acceptance test (MISSION.md section 6). An indefinite
+Newton matrix makes CG break down or return a non-descent direction: the solve then falls
+back to the direct factorisation (``fallback``), or the shell Newton moves to the next shift.
+``level_format = "sbaij"`` multiplies with a symmetric 3 x 3 block copy of ``A_l`` (upper
+triangle, about 40 % of the bytes of the AIJ product). Optional wrinkle-phase coarse space:
+:mod:`solvers.phase_space`.
 
 Inexact Newton: with ``forcing = "eisenstat_walker"`` the CG tolerance of Newton iteration k is
 Eisenstat & Walker's choice 2 (SIAM J. Sci. Comput. 17, 1996, eq. 2.6 with the safeguard of
 sec. 3), ``eta_k = gamma (||g_k|| / ||g_{k-1}||)^alpha``, bounded below by
 ``max(rtol, gamma eta_{k-1}^alpha)`` when that exceeds 0.1 and above by ``eta_max``.
+
+Measured iteration counts and timings, and the options tried and not adopted:
+docs/notes/multigrid.md.
 """
 
 from __future__ import annotations
@@ -132,9 +45,9 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 
+from meshes.errors import InputError
 from models.backend import PETSc
 from models.embedding.subdivision import Subdivision, SubdivisionOptions, subdivide
-from models.errors import InputError
 from models.shell.schedule import balanced_cuts, check_threads
 from solvers.linear import FactorReport
 from solvers.phase_space import (
@@ -167,57 +80,29 @@ class MultigridOptions:
         ew_max: Largest forcing term eta_max in (0, 1).
         smoother_degree: Chebyshev smoothing steps per level, before and after the coarse
             correction (>= 1).
-        smoother_pc: Preconditioner of the Chebyshev smoother: "jacobi" (diagonal of the
-            full level operator, penalty included) or "sor" (symmetric SOR sweeps on the
-            assembled ``A_l`` alone, the penalty ``G_l^T G_l`` left to Chebyshev). Measured on
-            the 9409-vertex plate of tests/test_multigrid.py (CPU time, shared machine):
-            Jacobi degree 2: 21 CG its, 0.16 s; SOR degree 2: 15 its, 0.23 s. Point-block
-            (3 x 3 vertex) Jacobi was tried in session 4 on the 160k warm-started frame of
-            benchmarks/iterative.py: 188 instead of 214 CG iterations in the three longest
-            solves, but 6.7 instead of 5.5 s CPU per Newton iteration (a numpy block
-            product per smoothing step), so it is not offered.
+        smoother_pc: Chebyshev's preconditioner: "jacobi" (diagonal of the level operator,
+            penalty included) or "sor" (symmetric SOR on ``A_l`` alone).
         cycle: "v" or "w" cycle.
         residual_slack: A solve is accepted when the true relative residual is at most
             ``residual_slack`` times the requested tolerance (>= 1; the recursive CG residual
             drifts from the true one by round-off).
-        fallback: On CG failure (no convergence, breakdown, true residual too large) solve
-            with the direct factorisation instead (counted in ``KrylovStats.fallbacks``);
-            False returns NaN, which the Newton treats as a failed direction (the shell
-            Newton then retries with the next diagonal shift, set up by multigrid again).
-        eigen_estimate: When the Chebyshev smoothers re-estimate ``lambda_max(D^-1 A_l)`` (10
-            GMRES steps per level): "setup" after every set-up (every Newton iteration and
-            shift), "solve" once per Newton solve (per frame: at the first set-up after
-            :meth:`MultigridLinearSystem.reset_forcing`), later set-ups keep the bounds and
-            only refresh the Jacobi diagonal. "solve" needs ``smoother_pc = "jacobi"``.
-        level_format: Storage of the level matrices ``A_l`` (l >= 1) in the CG and smoother
-            products: "aij" (the Galerkin products themselves, PETSc ``MatMult``) or "sbaij"
-            (a symmetric 3 x 3 block copy refreshed at every set-up: the upper triangle only,
-            about 40 % of the AIJ bytes per product, which is memory-bound; multiplied by
-            :class:`_SymmetricCopy`'s numba kernel on ``threads`` threads). The Galerkin
-            products stay AIJ.
-        target_fraction: When > 0 (and the Newton solver passes its gradient tolerance
-            ``tol``), the CG tolerance of an iteration is at least
-            ``min(ew_max, target_fraction tol / ||g_k||)``: the last Newton step is solved
-            only as accurately as reaching ``target_fraction tol`` needs (dimensionless,
-            in [0, 1); 0 = off).
-        phase_space: Add the wrinkle-phase coarse space of :mod:`solvers.phase_space` (coarse
-            hats times the wrinkle displacement and its tangential derivatives) as a
-            deflation (A-DEF2) correction around the V-cycle: one V-cycle, one product with
-            the Newton matrix and one small solve per CG iteration. It targets the soft band
-            of a wrinkled minimum (160k warm frame: 241 -> 79 CG iterations, 4.65 -> 2.68 s
-            CPU per Newton iteration, the same 6 Newton iterations); used only while its
-            Galerkin matrix is positive definite (else the V-cycle alone; an indefinite one
-            ends the set-up as a failed factorisation would). On the
-            2610-vertex default scene (3 frames, CG to 1e-4) it costs more than it saves:
-            shell stage 7.2 against 6.4 s; frame 1 ends in another (lower) wrinkled
-            minimum, W 0.07874 against 0.07941 (another sequence of shifted steps).
+        fallback: On CG failure solve with the direct factorisation instead (counted in
+            ``KrylovStats.fallbacks``); False returns NaN, a failed direction for the Newton.
+        eigen_estimate: When the Chebyshev bounds ``lambda_max(D^-1 A_l)`` are re-estimated:
+            "setup" (every set-up) or "solve" (first set-up of a Newton solve; needs
+            ``smoother_pc = "jacobi"``).
+        level_format: Level matrices ``A_l`` (l >= 1) in the CG and smoother products: "aij"
+            (the Galerkin products) or "sbaij" (a symmetric 3 x 3 block copy, upper triangle).
+        target_fraction: When > 0, the CG tolerance of an iteration is at least
+            ``min(ew_max, target_fraction tol / ||g_k||)`` for the Newton tolerance ``tol``
+            (in [0, 1); 0 = off).
+        phase_space: Add the wrinkle-phase coarse space of :mod:`solvers.phase_space` as a
+            deflation (A-DEF2) correction around the V-cycle.
         phase_level: Hierarchy level whose vertex hats modulate the test fields (0 = the
             coarse mesh; ``3 n_level`` columns).
         threads: Threads (numba ``prange``) of the level products with ``level_format =
             "sbaij"`` and of the penalty products (>= 1; the rest of CG stays on one). 1
-            never starts a thread pool; keep 1 under MPI (one core per rank). With more, the
-            OpenMP threads spin between products (``OMP_WAIT_POLICY=passive`` stops that at
-            ~10 % more wall time).
+            never starts a thread pool; keep 1 under MPI (one core per rank).
 
     """
 
@@ -352,9 +237,8 @@ class _LowRankOperator:
     ``y = A x + G^T (G x)``: ``MatMult`` with A, then the penalty. When ``G = H (x) I_3``
     (every level's factor is: ``G_l = (H S) (x) I_3``) the penalty is two numba passes over
     the vertex-level H and its transpose for all three coordinates (:class:`_VertexPenalty`,
-    ``threads`` row ranges each), 2.2 ms at 160k on one thread against 3.9 ms for
-    ``MatMult`` and ``MatMultTransposeAdd`` with the AIJ G (three times the entries); any
-    other G takes that PETSc path. No allocation per call.
+    ``threads`` row ranges each), a third of the entries of the AIJ G; any other G takes
+    PETSc's ``MatMult`` / ``MatMultTransposeAdd``. No allocation per call.
     """
 
     def __init__(self, a: Any, g: sp.csr_matrix | None, threads: int = 1) -> None:
@@ -537,13 +421,10 @@ class _SymmetricCopy:
     The positions of the upper block triangle's entries in the AIJ values are found once
     (the Galerkin patterns are fixed); :meth:`refresh` gathers the current values. The
     product (:meth:`mult`) is a numba pass over the upper blocks adding each block and its
-    transpose (:func:`_symmetric_rows`), about 40 % of the AIJ bytes: at 160k vertices
-    4.75 ms against 5.7 ms for PETSc's SBAIJ ``MatMult`` and 12.2 ms for the AIJ one. With
-    ``threads > 1`` the block rows are split into equal-work ranges, each thread adding into
-    its own vector (the transposed blocks reach any row), summed and re-zeroed afterwards by
-    row ranges (:func:`_symmetric_parallel`): 3.2-3.6 ms on two threads (quiet 2-core
-    machine, 2026-11-26; a Python thread pool instead of ``prange`` lost most of that to
-    GIL hand-offs: 4 ms per product).
+    transpose (:func:`_symmetric_rows`), about 40 % of the AIJ bytes. With ``threads > 1``
+    the block rows are split into equal-work ranges, each thread adding into its own vector
+    (the transposed blocks reach any row), summed and re-zeroed afterwards by row ranges
+    (:func:`_symmetric_parallel`). Timings: docs/notes/multigrid.md.
 
     Args:
         source: The AIJ matrix.

@@ -1,13 +1,11 @@
 """Wrinkle-phase coarse space: a second coarse correction for the soft band of a wrinkled shell.
 
-Near a wrinkled minimum the multigrid-preconditioned shell Newton matrix has a whole band of
-soft modes (:mod:`solvers.multigrid`, session-4 Ritz values): compression balances bending, so
-shifting the wrinkles sideways costs almost nothing. Such a mode is a *smooth envelope times
-the wrinkle carrier*, ``a(X) d_X w``: oscillatory at the fine scale (no coarse level of the
-subdivision hierarchy can represent it) yet of low energy (no smoother reduces it). This is the
-near-kernel of a Helmholtz-like operator, and the remedy follows the wave-ray idea (Brandt &
-Livshits, SIAM J. Sci. Comput. 18, 1997) and the local "multiscale" coarse spaces of spectral
-AMGe / GenEO: build the coarse basis from the carrier modulated by coarse hats.
+Near a wrinkled minimum the multigrid-preconditioned shell Newton matrix has a band of soft
+modes: compression balances bending, so shifting the wrinkles sideways costs almost nothing.
+Such a mode is a smooth envelope times the wrinkle carrier, ``a(X) d_X w``: oscillatory at the
+fine scale yet of low energy, the near-kernel of a Helmholtz-like operator. The remedy follows
+the wave-ray idea (Brandt & Livshits, SIAM J. Sci. Comput. 18, 1997) and the local coarse
+spaces of spectral AMGe / GenEO: the carrier modulated by coarse hats.
 
 The basis: with ``d = x - y`` the wrinkle displacement (positions minus the penalty target),
 ``D_k`` the surface gradient along the ambient rest direction ``e_k`` (:func:`surface_gradients`)
@@ -16,21 +14,20 @@ are
 
     t_0 = d,  t_1 = sum_k u_jk D_k d,  t_2 = sum_k v_jk D_k d        (n, 3) each,
 
--- the wrinkles and their phase-shifted partners (for ``w = sin(k x)``, ``D_x w ~ cos(k x)``) --
-and the columns are every coarse hat ``phi_j`` (vertex hats of hierarchy level ``phase_level``,
-the product of the subdivision matrices from there to the shell) times its test fields:
+the wrinkles and their phase-shifted partners; the columns are every coarse hat ``phi_j``
+(vertex hats of hierarchy level ``phase_level``, the product of the subdivision matrices from
+there to the shell) times its test fields:
 
     Z[3 v + c, 3 j + m] = phi_j(v) t_m[v, c] / ||column||,
 
-so ``span Z`` holds every coarse-scale modulation of the amplitude and phase of the wrinkles.
-(The three ambient derivatives are linearly dependent on a surface, ``n . grad = 0``; the
-per-hat frame keeps two independent ones.) Z's pattern is fixed (the hats'); its values follow x
-every Newton iteration. The coarse matrix ``A_Z = Z^T (A + tau I + G^T G) Z`` is a Galerkin
-product (``Z^T (A Z)``, both products' symbolic parts reused, the penalty ``(G Z)^T (G Z)``
-added; a retry with another shift of the same matrix adds ``(tau - tau') Z^T Z`` instead),
-factorised by MUMPS LDL^T; its inertia tells whether it is positive definite (else the
-multigrid runs alone for that matrix: ``Z^T A Z`` indefinite means A is). A zero column (no
-wrinkles under a hat) is kept with a unit diagonal so the pattern never changes.
+so ``span Z`` holds every coarse-scale modulation of the amplitude and phase of the wrinkles
+(the per-hat frame keeps two independent derivatives, ``n . grad = 0``). Z's pattern is fixed
+(the hats'); its values follow x every Newton iteration. The coarse matrix
+``A_Z = Z^T (A + tau I + G^T G) Z`` (``Z^T (A Z)`` with reused symbolic products, plus
+``(G Z)^T (G Z)``; another shift adds ``(tau - tau') Z^T Z``) is factorised by MUMPS LDL^T; its
+inertia tells whether it is positive definite (else the multigrid runs alone for that matrix:
+``Z^T A Z`` indefinite means A is). A zero column (no wrinkles under a hat) is kept with a unit
+diagonal so the pattern never changes.
 
 The correction enters CG as the deflation preconditioner A-DEF2 of Tang, Nabben, Vuik &
 Erlangga (J. Sci. Comput. 39, 2009), ``P = M + Q (I - A M)`` with ``Q = Z A_Z^{-1} Z^T`` and M
@@ -39,48 +36,7 @@ the multigrid V-cycle, from the start ``x_0 = Q b``: the CG residuals then satis
 ``Q + (I - QA) M (I - AQ)`` (Mandel, Commun. Numer. Methods Eng. 9, 1993). One application is
 one V-cycle, one product with A and one coarse solve.
 
-Measured (2026-11-25, quiet machine):
-
-* recorded Newton systems of the 160k warm-started frame of benchmarks/iterative.py (exact
-  Hessian at tau = 0, CG to the true residual 1e-8, prototype with four fields): multigrid
-  alone 200 / 197 CG iterations, with the phase space at level 0 (676 hats) 66 / 65, at level
-  1 (2601 hats) 62. The displacement field alone does not help (40k, level-1 hats: 113 ->
-  109 iterations), the derivative fields alone do (113 -> 49): the soft band is the phase of
-  the wrinkles;
-* the whole frame, CPU seconds per Newton iteration of the second of two solves by one solver
-  (the first pays the one-time set-up; its figure in parentheses), 2026-11-25 19:06Z, quiet
-  (``python benchmarks/iterative.py --sizes 160k --hessian exact --to-tolerance 1e-8
-  --methods direct multigrid-phase-ew multigrid-fast-ew multigrid-phase-ew-d1
-  multigrid-phase-ew-l1 --repeat 2 --breakdown``). Every row keeps the direct solve's 6
-  Newton iterations and minimiser (vertices within 3e-11):
-
-  ===========================  =====  ===========  ===================================
-  method                       CG     s / it       CPU per iteration
-  ===========================  =====  ===========  ===================================
-  direct (cached, load 2)      -      18.1         factorisation 17.4
-  multigrid-fast-ew            241    4.65 (4.91)  CG 3.39, evaluation 0.60
-  multigrid-phase-ew           79     2.68 (3.52)  CG 1.33, evaluation 0.59, phase 0.32
-  multigrid-phase-ew-d1        102    2.42 (3.13)  CG 1.17, evaluation 0.52, phase 0.30
-  multigrid-phase-ew-l1        72     2.83 (3.71)  CG 1.29, phase 0.59
-  ===========================  =====  ===========  ===================================
-
-  (-d1: one Chebyshev step per level; -l1: the 2601 hats of level 1. A rerun of -d1 gave
-  2.48 s; with W-cycles it needs 76 CG iterations but the same 2.51 s.) With the penalty
-  products of the level operators done on the vertex-level H (``multigrid._add_low_rank``,
-  2.2 instead of 3.9 ms per product at 160k): multigrid-phase-ew 2.43 s (3.07 s first
-  solve; CG 1.17 s), -d1 2.49 s (CG 1.12 s, evaluation and phase space 0.55 and 0.35 s in
-  that run); The rest of an
-  iteration is the multigrid's Galerkin levels (0.21 s) and SBAIJ copies (0.10 s). Two
-  things make the phase space cheap beyond the CG iterations it saves: an indefinite
-  ``Z^T A Z`` ends the set-up before the multigrid is built (3 of the 4 shifts of the
-  frame's first iteration), and a retry with another shift of the same evaluation adds
-  ``(tau - tau') Z^T Z`` instead of recomputing ``Z^T A Z`` (``A Z`` alone is 0.17 s);
-* one application: V-cycle 83 ms, A-DEF2 86 ms, a product with A 11 ms, Q 5.5 ms;
-* 2026-11-26 (session 7, another quiet 2-core machine; Gauss-Newton matrix of the frame's
-  start): V-cycle 45 ms, A-DEF2 58 ms, a product with A 6.6 ms on one thread; 35 / 46 /
-  4.3 ms with ``MultigridOptions.threads = 2``. The whole frame with ``--threads 2``: 1.49 s
-  wall per Newton iteration (1.98 s on one thread; :mod:`solvers.multigrid`);
-* tests/test_phase_space.py, a 2401-vertex wrinkled plate: 78 -> 49 CG iterations.
+Measurements (CG iterations, time per Newton iteration): docs/notes/phase-space.md.
 """
 
 from __future__ import annotations
@@ -91,8 +47,9 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 
+from meshes.errors import InputError
 from models.backend import PETSc
-from models.errors import InputError
+from models.shell.rest import area_weighted_normals
 from solvers.linear import FactorReport, LinearSolverOptions, SparseDirectSolver
 
 TEST_FIELDS: int = 3
@@ -142,12 +99,7 @@ def hat_frames(vertices: np.ndarray, faces: np.ndarray, hats: sp.csr_matrix) -> 
     Derivatives along ``u_j, v_j`` are independent, where the three ambient ones are not
     (``n . grad = 0``).
     """
-    e = vertices[faces[:, 1:]] - vertices[faces[:, :1]]
-    area_normals = np.cross(e[:, 0], e[:, 1])
-    vertex_normals = np.zeros_like(vertices, dtype=np.float64)
-    for k in range(3):
-        np.add.at(vertex_normals, faces[:, k], area_normals)
-    normals = hats.T @ vertex_normals
+    normals = hats.T @ area_weighted_normals(np.asarray(vertices, dtype=np.float64), faces)
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     axis = np.eye(3)[np.argmin(np.abs(normals), axis=1)]
     u = axis - np.einsum("jd,jd->j", axis, normals)[:, None] * normals
@@ -257,7 +209,7 @@ class PhaseSpace:
         return self._solver.factorize(total)
 
     def _galerkin_matrix(self, fine: Any) -> sp.csr_matrix:
-        """``Z^T (A Z)``: two products, symbolic parts reused (160k: 0.22 s; MatPtAP 0.30 s)."""
+        """``Z^T (A Z)``: two products, symbolic parts reused (cheaper than ``MatPtAP``)."""
         if self._az is None:
             self._az = fine.matMult(self.z)
             self._galerkin = self.z.transposeMatMult(self._az)

@@ -16,11 +16,7 @@ with Newton's method warm-started from the previous frame). Iteration k:
    2nd ed., Alg. 3.3), one schedule for every caller (:func:`solvers.linear.shift_candidates`):
    far from the minimum (``||g|| > switch_rtol g_ref``) an iteration after a shifted one
    starts at ``tau_prev / shift_decay`` without the unshifted attempt; nearer, ``tau = 0`` is
-   tried first. Measured on the 7 %-compressed 20x20 wrinkling plate with the exact Hessian
-   (tests/test_shift_schedule.py): 136 factorisations (56 failed) in 80 iterations, against
-   188 (109 failed) in 79 with session 1's "0 first, then from tau_prev / 10", and 45 (11)
-   in 34 with growth 5 and decay 2, the factors the quality presets select (they halve the
-   shell Newton time of the wrinkle scenes, :class:`solvers.linear.ShiftOptions`);
+   tried first (measured schedules: docs/notes/shift-schedule.md);
    with ``linear_method = "multigrid"`` the Newton system is solved by CG preconditioned by
    geometric multigrid on the subdivision hierarchy (:mod:`solvers.multigrid`), and with
    ``modified.enabled`` one factorisation serves several iterations and frames;
@@ -30,11 +26,8 @@ with Newton's method warm-started from the previous frame). Iteration k:
 5. stagnation stop: when ``stagnation_iterations`` accepted steps in a row neither lowered W by
    more than that round-off allowance nor reached a new smallest ``||g||``, the solve stops with
    :class:`ShellSolveError` naming the worst stencil (the vertex of largest ``|g_i|`` and its
-   incident face of lowest rest quality). Measured on a rest sliver of quality 2.3e-3 (issue 8):
-   the iterate collapses the sliver to zero current area, where its normal (hence the hinge
-   angle) is undefined and ``||H||_1`` reaches 1.2e25; from then on every step is accepted only
-   inside the round-off allowance (alpha = 1.9e-6, W frozen at 40.08254400747074, ||g|| =
-   4.9e6) and, without this stop, the solve spun to ``max_iterations``.
+   incident face of lowest rest quality): a sliver collapsed onto its singular zero-area state
+   otherwise spins to ``max_iterations`` (docs/notes/flip-barrier.md).
 
 Near a nondegenerate minimum the unshifted Newton step is taken with alpha = 1 and the
 gradient norm converges quadratically, ``||g_{k+1}|| <= C ||g_k||^2``.
@@ -49,7 +42,7 @@ from typing import Protocol
 import numpy as np
 import scipy.sparse as sp
 
-from models.errors import InputError, SolverError
+from meshes.errors import InputError, SolverError
 from models.shell.assembly import HESSIAN_MODES
 from models.shell.hinge_angle import hinge_angles
 from models.shell.rest import face_quality
@@ -141,9 +134,8 @@ class ShellNewtonOptions:
         hessian: Hessian mode "exact" | "gauss_newton" | "projected"; "" uses the energy's own
             ``hessian_mode``.
         far_hessian: Optional PSD mode ("gauss_newton" | "projected") used while
-            ``||g|| > switch_rtol g_ref`` before switching to ``hessian`` (the "mixed" strategy:
-            PSD models make fast progress far from the minimum, the exact Hessian converges
-            quadratically near it); "" = always ``hessian``.
+            ``||g|| > switch_rtol g_ref`` before switching to ``hessian``; "" = always
+            ``hessian``.
         switch_rtol: Relative gradient norm below which ``far_hessian`` hands over and the
             unshifted Hessian is always tried first.
         linear: Sparse direct solver of the Newton system (assembled penalty).
@@ -156,23 +148,8 @@ class ShellNewtonOptions:
             factorisations and non-descent directions).
         shift_decay: While ``||g|| > switch_rtol g_ref``, an iteration after one that needed
             ``tau_prev`` starts at ``tau_prev / shift_decay`` (> 1) without an unshifted
-            attempt (:func:`solvers.linear.shift_candidates`); nearer the minimum every
-            iteration tries ``tau = 0`` first, keeping the quadratic tail. The presets select
-            2 with ``ShiftOptions.growth = 5`` (measured there): the shift then follows the
-            softest negative curvature down slowly instead of retrying a 10x smaller,
-            indefinite one every iteration (scenes/default.toml, frame 1, 10 / 10: 88
-            iterations at the same shift, each paying a failed factorisation). The price on
-            easy frames: more attempts to climb from ``tau_0`` and a slower return to 0
-            (scenes/ball_sofa_coarse.toml: 87 -> 104 factorisations, 45 -> 52 iterations,
-            14.7 -> 18.1 s shell Newton time over 10 frames). Tried and not adopted (quiet
-            machine): a decay that accelerates while its first attempts keep succeeding
-            (``tau_prev / 2^(1 + m)`` after m such iterations, as Nielsen's
-            Levenberg-Marquardt update doubles its factor): ball_sofa_coarse 18.9 -> 18.2 s
-            (10 / 10: 16.2 s), but scenes/default.toml 14.5 -> 18.2 s. Nor starting a frame
-            from the shift its predecessor's first iteration accepted (every frame of the
-            default scene climbs 9 factorisations to ~3.3e3): bent_bar 14.4 -> 12.4 s,
-            twisted_cylinder 18.3 -> 15.4 s, but default 13.0 -> 15.5 s (169 -> 210
-            iterations, another path).
+            attempt; nearer the minimum every iteration tries ``tau = 0`` first, keeping the
+            quadratic tail (measured schedules: docs/notes/shift-schedule.md).
         linear_method: "direct" (sparse factorisation, ``linear``) or "multigrid" (CG with
             geometric multigrid on the subdivision hierarchy, ``multigrid``; needs the
             ``hierarchy`` argument of :class:`ShellNewtonSolver` and a PSD Hessian mode).
@@ -497,10 +474,8 @@ def folded_hinge(energy: object, x: np.ndarray) -> str:
 
     The bend angle lives in ``(-pi, pi]`` (:mod:`models.shell.hinge_angle`): at ``+-pi`` the
     two faces lie back to back and ``(theta - theta0)^2`` jumps, so no line search crosses
-    it. Measured on the two-way bar with 2-3 coupling iterations (an unconverged body): the
-    shell Newton stalled at ``||g|| = 3.75`` with W jumping by 7.5e-3 at one hinge for any
-    step. Empty when no hinge is within :data:`FOLD_MARGIN` of +-pi or ``energy`` has no
-    ``topology.hinges``.
+    it (a shell Newton on an unconverged two-way body can stall there). Empty when no hinge is
+    within :data:`FOLD_MARGIN` of +-pi or ``energy`` has no ``topology.hinges``.
     """
     hinges = getattr(getattr(energy, "topology", None), "hinges", None)
     if hinges is None or len(hinges) == 0:

@@ -10,9 +10,10 @@ import sys
 import numpy as np
 
 from models.backend import MPI, dolfinx, mesh_from_arrays
-from models.body import Body, BodyOptions, PinSpec
+from models.body import BodyOptions, PinSpec
 from models.contact import ContactOptions
 from models.materials import Material
+from solvers.body import Body
 
 
 def gathered(body: Body) -> np.ndarray:

@@ -14,8 +14,8 @@ import sys
 
 import numpy as np
 
+from meshes.errors import SolverError
 from models.backend import MPI
-from models.errors import SolverError
 from models.shell.energy import ShellEnergy, ShellParams
 from solvers.decomposition.block import BlockOptions
 from solvers.decomposition.demo import PlateCase, plate_problem

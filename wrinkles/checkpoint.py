@@ -26,9 +26,9 @@ import h5py
 import numpy as np
 from scipy.spatial import cKDTree
 
+from meshes.errors import InputError
 from models.backend import MPI
-from models.body import Body
-from models.errors import InputError
+from solvers.body import Body
 
 CHECKPOINT_NAME = "checkpoint.h5"
 FORMAT = 2

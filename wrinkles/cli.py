@@ -31,7 +31,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from models.errors import InputError, SolverError, WrinklesError
+from meshes.errors import InputError, SolverError, WrinklesError
 from wrinkles.render import add_parser as add_render_parser
 from wrinkles.render import command_render
 
@@ -59,7 +59,7 @@ def build_parser() -> ArgumentParser:
                      "(replaces time.frames / time.end_time)")
     run.add_argument("--resume", "--restart", dest="resume", action="store_true",
                      help="continue the run in --out from its last completed frame (same "
-                     "scene; time, output, newton, shell.newton and shell.energy.threads may "
+                     "scene; time, output, newton and shell.solver may "
                      "change); --restart is an alias")
     add_scene_arguments(commands.add_parser(
         "check", help="validate a scene file and print the resolved scene as JSON"))
@@ -84,8 +84,8 @@ def one_line(message: str) -> str:
 
 def command_run(args: argparse.Namespace) -> int:
     """Load the scene, apply ``--frames`` and ``--set``, run it (collective)."""
+    from meshes.errors import SolverError
     from models.backend import MPI
-    from models.errors import SolverError
     from wrinkles.runner import prepare, run_frames
     from wrinkles.scene import load_scene, with_frames
 

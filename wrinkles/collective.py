@@ -10,8 +10,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import cast
 
+from meshes.errors import WrinklesError
 from models.backend import MPI
-from models.errors import WrinklesError
 
 
 def on_root[T](comm: MPI.Comm, make: Callable[[], T]) -> T | None:

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from models.errors import InputError
+from meshes.errors import InputError
 from wrinkles.presets import apply_quality
 
 # --------------------------------------------------------------------------------------------
@@ -52,7 +52,14 @@ class Source:
         """Return the message prefix ``"<file>: <key>"`` (or ``"--set <key>"``)."""
         if key in self.overridden:
             return f"{self.name}: --set {key}"
+        if not self.name:
+            return key
         return f"{self.name}: {key}" if key else self.name
+
+    @property
+    def lead(self) -> str:
+        """``"<file>: "`` (empty for a source without a name)."""
+        return f"{self.name}: " if self.name else ""
 
     def error(self, key: str, message: str) -> InputError:
         """Build the ``InputError`` for ``key`` with a one-line ``message``."""
@@ -197,7 +204,7 @@ def _check_keys(table: Mapping[str, Any], known: list[str], prefix: str, src: So
         if key not in known:
             hint = difflib.get_close_matches(key, known, n=1)
             extra = f" (did you mean '{hint[0]}'?)" if hint else ""
-            raise InputError(f"{src.name}: unknown key '{_join(prefix, key)}'{extra}")
+            raise InputError(f"{src.lead}unknown key '{_join(prefix, key)}'{extra}")
 
 
 def _required(hints: Mapping[str, Any], params: Mapping[str, inspect.Parameter]) -> list[str]:
@@ -225,7 +232,7 @@ def convert_kwargs(hints: Mapping[str, Any], required: list[str], table: Any,
     _check_keys(table, list(hints), prefix, src)
     for name in required:
         if name not in table:
-            raise InputError(f"{src.name}: missing key '{_join(prefix, name)}'")
+            raise InputError(f"{src.lead}missing key '{_join(prefix, name)}'")
     return {k: convert(v, hints[k], _join(prefix, k), src) for k, v in table.items()}
 
 
@@ -267,7 +274,7 @@ def _prefixed(message: str, prefix: str, src: Source) -> InputError:
     """
     parent, _, last = prefix.rpartition(".")
     if last and message.startswith(f"{last}."):
-        return InputError(f"{src.name}: {_join(parent, message)}")
+        return InputError(f"{src.lead}{_join(parent, message)}")
     return src.error(prefix, message)
 
 
@@ -291,6 +298,95 @@ def call_kwargs(func: Callable[..., Any], table: Any, prefix: str,
               if n not in skip and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
     hints = {n: hints.get(n, Any) for n in params}
     return convert_kwargs(hints, _required(hints, params), table, prefix, src)
+
+
+# --------------------------------------------------------------------------------------------
+# Expert options: dotted keys into an internal options dataclass
+
+
+def unflatten(options: Mapping[str, Any], prefix: str) -> dict[str, Any]:
+    """Nest a mapping with dotted keys (``{"shift.growth": 5}`` -> ``{"shift": {"growth": 5}}``).
+
+    Raises:
+        InputError: a key is given twice (once dotted, once nested) or crosses a value.
+
+    """
+    nested: dict[str, Any] = {}
+    for dotted, value in options.items():
+        *parents, leaf = str(dotted).split(".")
+        table = nested
+        for depth, part in enumerate(parents):
+            table = table.setdefault(part, {})
+            if not isinstance(table, dict):
+                key = _join(prefix, ".".join(parents[:depth + 1]))
+                raise InputError(f"{key}: is a value, not a table")
+        if isinstance(value, Mapping):
+            value = unflatten(value, _join(prefix, dotted))
+        if leaf in table and not (isinstance(table[leaf], dict) and isinstance(value, dict)):
+            raise InputError(f"{_join(prefix, dotted)}: given twice")
+        if isinstance(value, dict) and isinstance(table.get(leaf), dict):
+            table[leaf].update(value)
+        else:
+            table[leaf] = value
+    return nested
+
+
+def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Return a nested mapping as sorted dotted keys (the canonical form of an expert mapping)."""
+    flat: dict[str, Any] = {}
+    for key, value in tree.items():
+        dotted = _join(prefix, str(key))
+        if isinstance(value, Mapping) and value:
+            flat.update(flatten(value, dotted))
+        else:
+            flat[dotted] = value
+    return dict(sorted(flat.items()))
+
+
+def expert[T](cls: type[T], options: Mapping[str, Any], prefix: str,
+              named: Mapping[str, Any] | None = None,
+              defaults: Mapping[str, Any] | None = None) -> T:
+    """Build the internal options dataclass ``cls`` from named keys and an expert mapping.
+
+    A scene exposes a few named choices of a solver and passes the rest as a mapping of dotted
+    field paths of ``cls`` (``[shell.solver.options] "shift.growth" = 5``), the way dolfinx
+    passes ``petsc_options``. Both go through the loader's conversion and validation; a key of
+    the mapping that one of the named keys already sets is refused (one place per value).
+
+    Args:
+        cls: the internal options dataclass.
+        options: the expert mapping (dotted or nested keys).
+        prefix: dotted key of the mapping, for messages (``shell.solver.options``).
+        named: field values set by the scene's named keys (dotted paths of ``cls``).
+        defaults: starting values where the scene's defaults differ from ``cls``'s (the
+            mapping may change them).
+
+    Raises:
+        InputError: unknown key (with a suggestion), wrong type or value, or a key that a
+            named key already sets; the message names ``prefix.<key>``.
+
+    """
+    named = dict(named or {})
+    tree = unflatten(options, prefix)
+    for key in named:
+        parts, table = key.split("."), tree
+        for part in parts[:-1]:
+            table = table.get(part, {}) if isinstance(table, dict) else {}
+        if isinstance(table, dict) and parts[-1] in table:
+            raise InputError(f"{_join(prefix, key)}: set by a named key of the scene, not here")
+    merged = unflatten(dict(defaults or {}), prefix)
+    _merge(merged, tree)
+    _merge(merged, unflatten(named, prefix))
+    return build(cls, merged, prefix, Source(""))
+
+
+def _merge(into: dict[str, Any], other: Mapping[str, Any]) -> None:
+    """Deep-merge ``other`` into ``into`` (tables merged, values replaced)."""
+    for key, value in other.items():
+        if isinstance(value, Mapping) and isinstance(into.get(key), dict):
+            _merge(into[key], value)
+        else:
+            into[key] = value
 
 
 # --------------------------------------------------------------------------------------------
@@ -341,14 +437,17 @@ def apply_override(doc: dict[str, Any], assignment: str, src_name: str) -> str:
     if not sep or not key or any(not part for part in key.split(".")):
         raise InputError(f"{src_name}: --set expects key=value with a dotted key, "
                          f"got {assignment!r}")
-    *parents, leaf = key.split(".")
-    table = doc
-    for depth, part in enumerate(parents):
-        table = table.setdefault(part, {})
+    parts, table, depth = key.split("."), doc, 0
+    while depth < len(parts) - 1:
+        rest = ".".join(parts[depth:])
+        if rest in table:  # a mapping that spells the rest as one dotted key
+            break
+        table = table.setdefault(parts[depth], {})
+        depth += 1
         if not isinstance(table, dict):
             raise InputError(f"{src_name}: --set {key}: "
-                             f"'{'.'.join(parents[:depth + 1])}' is not a table")
-    table[leaf] = parse_literal(text.strip())
+                             f"'{'.'.join(parts[:depth])}' is not a table")
+    table[".".join(parts[depth:])] = parse_literal(text.strip())
     return key
 
 
@@ -401,8 +500,11 @@ __all__ = [
     "build",
     "call_kwargs",
     "convert",
+    "expert",
+    "flatten",
     "load",
     "parse_literal",
     "read_toml",
     "to_dict",
+    "unflatten",
 ]

@@ -16,8 +16,7 @@ the step's grids, their data items pointing at the step file, are merged into ``
 through a temporary file + ``os.replace``. Both renames are atomic and the XML is replaced
 after the HDF5 file is in place, so at any instant ``body.xdmf`` is complete and references
 only data on disk: a run killed at any moment keeps every completed frame readable. A frame
-costs O(size of the frame) in HDF5 bytes (session 1 copied the whole, growing ``body.h5`` each
-frame: O(frames^2) bytes over a run) plus the rewrite of the XML (about 1 kB per step).
+costs O(size of the frame) in HDF5 bytes plus the rewrite of the XML (about 1 kB per step).
 ``body.h5`` holds the mesh only. The shell series (:mod:`wrinkles.shell_output`) uses the
 same per-step files. :func:`complete_steps` lists the steps whose data is actually readable.
 
@@ -45,8 +44,8 @@ from typing import Any
 import h5py
 import numpy as np
 
+from meshes.errors import InputError
 from models.backend import MPI, PETSc, dolfinx
-from models.errors import InputError
 from wrinkles.collective import on_root
 
 XDMF_NAME = "body.xdmf"
@@ -54,7 +53,10 @@ SUMMARY_NAME = "summary.json"
 FIELDS: tuple[str, ...] = ("displacement", "velocity")
 PACKAGES: tuple[str, ...] = ("dolfinx-solver-real", "numpy", "scipy", "mpi4py", "meshio",
                              "gmsh", "h5py", "numba", "scikit-fem")
-XI = "{https://www.w3.org/2001/XInclude}"
+XI = "{http://www.w3.org/2001/XInclude}"
+"""The XInclude namespace libxml2 expands (ParaView's legacy XDMF reader, ``vtkXdmfReader``,
+pyvista); dolfinx 0.11 writes ``https://...``, which those readers do not expand."""
+XI_HTTPS = "https://www.w3.org/2001/XInclude"
 XML_HEADER = "<?xml version='1.0' encoding='utf-8'?>\n"
 WORK_DIR = ".work"
 """Sub-directory of the output directory where a frame is written before it is committed."""
@@ -69,21 +71,17 @@ class OutputOptions:
     Attributes:
         xdmf: write the body time series ``body.xdmf`` + ``body.h5``.
         every: write the XDMF fields every N-th frame (the last frame is always written); >= 1.
-        summary: write ``summary.json`` (resolved scene, versions, per-frame records).
         checkpoint: write ``checkpoint.h5`` (state of the last completed frame) so that
             ``wrinkles run --resume`` can continue the run.
-        atomic: commit the XDMF XML of each frame through a temporary file and an atomic
-            rename (module doc), so that a kill during a write cannot damage the frames
-            already on disk; ``false`` rewrites the XML in place (a kill mid-write can
-            truncate it). Step data always goes to its own HDF5 file, renamed into place.
+        render: after a run with a shell, write ``shell.png``, per-frame PNGs and
+            ``shell.gif`` (:mod:`wrinkles.render`).
 
     """
 
     xdmf: bool = True
     every: int = 1
-    summary: bool = True
     checkpoint: bool = True
-    atomic: bool = True
+    render: bool = False
 
     def __post_init__(self) -> None:
         if self.every < 1:
@@ -120,14 +118,12 @@ class XdmfSeries:
         resume_after: ``None`` to start a new file; for a restart, the time [s] of the
             restored state: the existing file is kept and its steps after that time are
             removed (XML and HDF5 data), so the rerun frames replace them.
-        atomic: with ``False`` the XML is rewritten in place instead of through a temporary
-            file (``OutputOptions.atomic``); the step data always goes to its own file.
 
     """
 
     def __init__(self, path: Path, fields: Mapping[str, dolfinx.fem.Function],
-                 resume_after: float | None = None, atomic: bool = True) -> None:
-        self.path, self.atomic = path, atomic
+                 resume_after: float | None = None) -> None:
+        self.path = path
         self.work = path.parent / WORK_DIR / path.name
         self.fields = dict(fields)
         self._nodal = {name: p1_function(u, name) for name, u in self.fields.items()}
@@ -138,8 +134,7 @@ class XdmfSeries:
             with dolfinx.io.XDMFFile(self.comm, str(self.work), "w") as xdmf:
                 xdmf.write_mesh(self.mesh)
             on_root(self.comm, lambda: commit_frame(
-                self.path, self.work, True, lambda: merge_time_collections(self.work,
-                                                                           self.path)))
+                self.path, self.work, lambda: merge_time_collections(self.work, self.path)))
         else:
             geometry = written_geometry(self.mesh)
             on_root(self.comm, lambda: resume_file(path, geometry, resume_after))
@@ -152,7 +147,7 @@ class XdmfSeries:
             xdmf.write_mesh(self.mesh)  # a step file without a mesh makes dolfinx warn
             for u1 in self._nodal.values():
                 xdmf.write_function(u1, t)
-        on_root(self.comm, lambda: commit_step(self.path, self.work, self.atomic))
+        on_root(self.comm, lambda: commit_step(self.path, self.work))
 
 
 def steps_dir(path: Path) -> Path:
@@ -170,14 +165,24 @@ def count_steps(root: ET.Element) -> int:
     return sum(1 for c in root.iter("Grid") for _ in c.findall("Grid"))
 
 
-def commit_step(path: Path, work: Path, atomic: bool = True) -> None:
+def parse_xdmf(path: Path) -> ET.ElementTree[ET.Element[str]]:
+    """Parse an XDMF file, with dolfinx's ``https`` XInclude namespace read as :data:`XI`.
+
+    Every XML file of a series passes through here before it is written again, so the files
+    on disk always carry the namespace libxml2-based readers expand.
+    """
+    text = path.read_text(encoding="utf-8").replace(XI_HTTPS, XI[1:-1])
+    return ET.ElementTree(ET.fromstring(text))
+
+
+def commit_step(path: Path, work: Path) -> None:
     """Commit a step dolfinx wrote into ``work`` (rank 0): move its HDF5 file, merge its XML.
 
     The HDF5 file becomes ``step_file(path, k)`` (``k`` = steps listed so far; a file left
     by a dropped step of that index is replaced) by ``os.replace``; only then the step's
     grids, their data items re-pointed at that file, are merged into ``path``'s XML.
     """
-    tree, new = ET.parse(path), ET.parse(work)
+    tree, new = parse_xdmf(path), parse_xdmf(work)
     dest = step_file(path, count_steps(tree.getroot()))
     dest.parent.mkdir(parents=True, exist_ok=True)
     os.replace(work.with_suffix(".h5"), dest)
@@ -189,26 +194,23 @@ def commit_step(path: Path, work: Path, atomic: bool = True) -> None:
             if item.text and ":" in item.text:
                 item.text = f"{relative}:{item.text.split(':', 1)[1].strip()}"
         domain.append(collection)
-    merge_tree(tree, path, path, atomic)
+    merge_tree(tree, path, path)
 
 
-def commit_frame(path: Path, work: Path, atomic: bool, write_xml: Callable[[], None]) -> None:
+def commit_frame(path: Path, work: Path, write_xml: Callable[[], None]) -> None:
     """Move ``work``'s HDF5 file over ``path``'s (rank 0), then call ``write_xml``.
 
     ``os.replace`` is atomic, and ``write_xml`` (which must write ``path`` atomically) runs
     only afterwards, so at any instant the XML on disk references only data on disk. Used
     for the series' first file (the mesh); steps go through :func:`commit_step`.
     """
-    if atomic:
-        os.replace(work.with_suffix(".h5"), path.with_suffix(".h5"))
+    os.replace(work.with_suffix(".h5"), path.with_suffix(".h5"))
     write_xml()
 
 
-def write_xml_atomic(tree: ET.ElementTree[ET.Element[str]], path: Path,
-                     atomic: bool = True) -> None:
+def write_xml_atomic(tree: ET.ElementTree[ET.Element[str]], path: Path) -> None:
     """Write an XDMF tree to ``path`` through a temporary file and ``os.replace``.
 
-    ``atomic = False`` writes ``path`` in place (a kill mid-write can truncate it).
     The ``xi`` namespace stays declared on the root even when no ``xi:include`` is left
     (ElementTree drops unused declarations; dolfinx appends ``xi:include`` without one).
     """
@@ -216,15 +218,14 @@ def write_xml_atomic(tree: ET.ElementTree[ET.Element[str]], path: Path,
     text = ET.tostring(tree.getroot(), encoding="unicode")
     if "xmlns:xi=" not in text.split(">", 1)[0]:
         text = text.replace("<Xdmf", f'<Xdmf xmlns:xi="{XI[1:-1]}"', 1)
-    write_text_atomic(path, XML_HEADER + text + "\n", atomic)
+    write_text_atomic(path, XML_HEADER + text + "\n")
 
 
-def write_text_atomic(path: Path, text: str, atomic: bool = True) -> None:
-    """Write ``text`` to ``path`` through a temporary file + ``os.replace`` (or in place)."""
-    tmp = path.with_name(f".{path.name}.tmp") if atomic else path
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file + ``os.replace``."""
+    tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(text, encoding="utf-8")
-    if atomic:
-        os.replace(tmp, path)
+    os.replace(tmp, path)
 
 
 def _step_key(grid: ET.Element) -> str:
@@ -240,12 +241,11 @@ def _temporal(domain: ET.Element | None) -> list[ET.Element]:
     return [g for g in domain.findall("Grid") if g.get("CollectionType") == "Temporal"]
 
 
-def merge_tree(tree: ET.ElementTree[ET.Element[str]], path: Path, dest: Path,
-               atomic: bool = True) -> None:
+def merge_tree(tree: ET.ElementTree[ET.Element[str]], path: Path, dest: Path) -> None:
     """Merge the temporal collections of an XDMF tree into one and write it to ``dest``.
 
     Every field's ``Attribute`` of a given time goes into one ``Uniform`` grid (sorted by
-    time). ``path`` names the file in error messages; ``atomic = False`` writes in place.
+    time). ``path`` names the file in error messages.
     """
     domain = tree.getroot().find("Domain")
     if domain is None:
@@ -258,7 +258,7 @@ def merge_tree(tree: ET.ElementTree[ET.Element[str]], path: Path, dest: Path,
     merged = ET.SubElement(domain, "Grid", Name="fields", GridType="Collection",
                            CollectionType="Temporal")
     merged.extend(sorted(steps.values(), key=lambda g: float(_step_key(g))))
-    write_xml_atomic(tree, dest, atomic)
+    write_xml_atomic(tree, dest)
 
 
 def merge_time_collections(path: Path, dest: Path | None = None) -> None:
@@ -269,7 +269,7 @@ def merge_time_collections(path: Path, dest: Path | None = None) -> None:
     data of one step. Idempotent: merging a merged file changes nothing. The result goes to
     ``dest`` (default ``path``) atomically.
     """
-    merge_tree(ET.parse(path), path, dest or path)
+    merge_tree(parse_xdmf(path), path, dest or path)
 
 
 def _merge_step(steps: dict[str, ET.Element], grid: ET.Element) -> None:
@@ -328,7 +328,7 @@ def drop_steps_after(path: Path, t: float) -> None:
     removed from a copy that replaces it. A kill in between leaves a consistent series.
     """
     merge_time_collections(path)
-    tree = ET.parse(path)
+    tree = parse_xdmf(path)
     late = [(c, g) for c in tree.getroot().iter("Grid") for g in c.findall("Grid")
             if float(_step_key(g)) > t + 1e-12 * max(1.0, abs(t))]
     for collection, grid in late:
@@ -369,7 +369,7 @@ def complete_steps(path: Path) -> list[float]:
     unreadable XML file altogether) is left out instead of failing the whole series.
     """
     try:
-        grids = [g for c in ET.parse(path).getroot().iter("Grid") for g in c.findall("Grid")]
+        grids = [g for c in parse_xdmf(path).getroot().iter("Grid") for g in c.findall("Grid")]
     except (OSError, ET.ParseError):
         return []
     return [float(_step_key(g)) for g in grids if _readable(path.parent, _references(g))]
@@ -413,8 +413,7 @@ def json_text(data: Any) -> str:
     """JSON text of ``data``: top-level entries indented, items of top-level lists one line each.
 
     ``json.dumps`` with ``indent`` runs the pure-Python encoder; compact items use the C
-    encoder, so rewriting ``summary.json`` after every frame stays cheap for long runs
-    (measured: 1000 frame records took 0.42 s per rewrite fully indented).
+    encoder, so rewriting ``summary.json`` after every frame stays cheap for long runs.
     """
     if not isinstance(data, dict):
         return json.dumps(data, indent=2, allow_nan=True) + "\n"
@@ -449,7 +448,7 @@ def worst_cell(body: Any) -> dict[str, Any]:
     """Locate the smallest ``det F`` over the body's volume quadrature points (collective).
 
     ``det F = det(I + grad u)`` at the degree-``qdegree`` points of every owned cell comes
-    from :meth:`models.body.Body.det_f_points` (the expression of ``min_det_f``); the global
+    from :meth:`solvers.body.Body.det_f_points` (the expression of ``min_det_f``); the global
     minimum, its cell (global index), quadrature point and the cell's reference centroid are
     returned on every rank.
     """

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from models.errors import InputError
+from meshes.errors import InputError
 from wrinkles.shell_output import SHELL_XDMF_NAME, ShellFrame, read_shell_series
 
 

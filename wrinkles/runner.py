@@ -3,23 +3,20 @@
 Algorithm 1 of the draft (Rémillard & Kry 2013 embedded thin shells) advances the coarse body
 and then the embedded shell once per frame. Here one frame runs the *stages* in order, each a
 callable ``stage(frame) -> dict`` that advances its part of the model and returns the numbers
-it wants in the frame record. The body stage is the only one today; the shell stage plugs in
-after it without touching the loop::
+it wants in the frame record::
 
-    run = prepare(scene, out, comm)          # mesh, body, body stage, output files
-    run.stages.append(("shell", shell_stage))  # e.g. target y = B (X_q + u_q), minimise W
+    run = prepare(scene, out, comm)          # mesh, body, body stage, shell stage, output files
     run_frames(run, log)
 
 A scene with a ``[shell]`` table gets the embedded-shell stage of :mod:`wrinkles.shell_stage`
-this way (``shell.xdmf`` beside ``body.xdmf``); with ``shell.coupling.mode = "two_way"`` the body
-gets the shell's penalty force as a nodal load (``Body.set_nodal_load``) and one coupled stage
-replaces body and shell stages (fixed point of body step and shell solve per frame).
-``shell.render`` renders the shell (:mod:`wrinkles.render`) when the run completes.
+after the body stage (``shell.xdmf`` beside ``body.xdmf``); with ``shell.coupling.mode =
+"two_way"`` one coupled stage (:mod:`wrinkles.two_way`) replaces body and shell stages.
+``output.render`` renders the shell (:mod:`wrinkles.render`) when the run completes.
 
 A scene with ``[[rigid.balls]]`` (:mod:`models.rigid`) gets each ball's sphere as a contact of
 the body (after ``[[body.contacts]]``), and the body stage becomes the ``body+rigid`` stage:
 every body step is a coupled step of balls and body (interface iteration ball position <->
-body solve, :class:`models.rigid.BallCoupling`). Its record adds, per frame, each ball's
+body solve, :class:`solvers.coupling.BallCoupling`). Its record adds, per frame, each ball's
 centre, velocity, contact force and penetration (max over the frame's steps, fraction of the
 radius), the interface iterations per step and the cumulative momentum balance; the balls'
 state is the checkpoint's ``rigid`` arrays. The shell stages (one- and two-way) call this
@@ -49,11 +46,12 @@ from typing import Any
 import numpy as np
 
 import meshes
+from meshes.errors import InputError, SolverError
 from meshes.tetmesh import TetMesh
 from models.backend import MPI, dolfinx, mesh_from_arrays
-from models.body import Body, StepReport
-from models.errors import InputError, SolverError
-from models.rigid import BallCoupling, RigidStepInfo
+from models.rigid import RigidStepInfo
+from solvers.body import Body, StepReport
+from solvers.coupling import BallCoupling
 from wrinkles.checkpoint import (
     CHECKPOINT_NAME,
     BodyState,
@@ -72,25 +70,17 @@ from wrinkles.output import (
     write_json_atomic,
 )
 from wrinkles.scene import Scene, SceneMesh, mesh_builder, scene_dict
-from wrinkles.shell_stage import (
-    Shell,
-    apply_force,
-    build_shell,
-    implicit_stage,
-    make_writer,
-    one_way_stage,
-    restore_shell,
-    shell_arrays,
-    two_way_stage,
-)
+from wrinkles.shell_output import make_writer
+from wrinkles.shell_setup import Shell, build_shell
+from wrinkles.shell_stage import one_way_stage, restore_shell, shell_arrays
+from wrinkles.two_way import apply_force, two_way_stage
 
 SUMMED: tuple[str, ...] = ("newton_iterations", "halvings", "substeps")
 """``StepReport`` counts that add up over the steps of a frame."""
 
-RESTART_MAY_CHANGE: tuple[str, ...] = ("time", "output", "newton", "shell.newton",
-                                       "shell.energy.threads")
+RESTART_MAY_CHANGE: tuple[str, ...] = ("time", "output", "newton", "shell.solver")
 """Scene keys a ``--restart`` may change: time, output, the body's and the shell's solver
-options, and the threads of the shell's element kernels (round-off only)."""
+options (their threads change round-off only)."""
 
 Stage = Callable[[int], Mapping[str, Any]]
 """One part of a frame: ``stage(frame)`` advances its model and returns record entries."""
@@ -266,7 +256,7 @@ def make_body(scene: Scene, mesh: dolfinx.mesh.Mesh) -> Body:
     if scene.rigid is not None and scene.rigid.balls:
         balls = tuple(ball.contact() for ball in scene.rigid.balls)
         options = dataclasses.replace(options, contacts=(*options.contacts, *balls))
-    return Body(mesh, scene.material, options, scene.newton)
+    return Body(mesh, scene.material, options, scene.newton.internals)
 
 
 def rigid_stage(coupling: BallCoupling, steps: int) -> Stage:
@@ -315,18 +305,16 @@ def attach_shell(run: Run, state: BodyState | None) -> None:
     shell = build_shell(run.body, options, run.scene.material)
     if state is not None:
         restore_shell(shell, checkpoint_stage(state, "shell"))
-        if options.coupling.mode == "two_way":
+        coupling = options.internals.coupling
+        if coupling.mode == "two_way" and coupling.scheme == "explicit":
             apply_force(shell, run.body)
-    every, last = run.scene.output.every, run.n_frames
-    write = make_writer(shell, run.out, run.comm, lambda f: f % every == 0 or f == last,
-                        None if state is None else state.time, run.scene.output.atomic)
+    output, last = run.scene.output, run.n_frames
+    write = (make_writer(shell, run.out, run.comm, lambda f: output.writes_frame(f, last),
+                         None if state is None else state.time)
+             if output.xdmf else (lambda frame, t: None))
     if options.coupling.mode == "two_way":
-        steps = run.scene.time.steps_per_frame
         body = run.stages[0][1]  # the body stage, or the body+rigid stage
-        stage = (implicit_stage(shell, run.body, body, write)
-                 if options.coupling.scheme == "implicit"
-                 else two_way_stage(shell, run.body, steps, body, write))
-        run.stages = [("body+shell", stage)]
+        run.stages = [("body+shell", two_way_stage(shell, run.body, body, write))]
     else:
         run.stages.append(("shell", one_way_stage(shell, run.body, write)))
     run.shell = shell
@@ -345,8 +333,7 @@ def checkpoint_stage(state: BodyState, stage: str) -> dict[str, np.ndarray]:
 def start(run: Run) -> None:
     """Write the mesh and the initial state (t = 0) of a new run's body series."""
     if run.scene.output.xdmf:
-        run.series = XdmfSeries(run.out / XDMF_NAME, output_fields(run.body),
-                                atomic=run.scene.output.atomic)
+        run.series = XdmfSeries(run.out / XDMF_NAME, output_fields(run.body))
         run.series.write(run.body.t)
 
 
@@ -370,7 +357,7 @@ def resume(run: Run) -> BodyState:
                                                           "ranks": run.comm.size}]
     if run.scene.output.xdmf:
         run.series = XdmfSeries(run.out / XDMF_NAME, output_fields(run.body),
-                                resume_after=state.time, atomic=run.scene.output.atomic)
+                                resume_after=state.time)
     write_summary(run)
     return state
 
@@ -477,8 +464,8 @@ def make_record(frame: int, values: dict[str, Any], stage_times: dict[str, float
 
 
 def write_summary(run: Run) -> None:
-    """Rewrite ``summary.json`` atomically on rank 0 (if the scene asks for it)."""
-    if run.scene.output.summary and run.comm.rank == 0:
+    """Rewrite ``summary.json`` atomically on rank 0."""
+    if run.comm.rank == 0:
         frames = [dataclasses.asdict(r) for r in run.records]
         document = summary_document(scene_dict(run.scene), run.facts, frames)
         write_json_atomic(run.out / SUMMARY_NAME, document)
@@ -511,7 +498,7 @@ def run_frames(run: Run, log: Callable[[str], None] = print) -> Run:
 
 def render_if_asked(run: Run, log: Callable[[str], None]) -> None:
     """Render the shell series (PNG frames, ``shell.png``, ``shell.gif``) on rank 0."""
-    if run.scene.shell is None or not run.scene.shell.render or run.comm.rank != 0:
+    if run.scene.shell is None or not run.scene.output.render or run.comm.rank != 0:
         return
     from wrinkles.render import RenderOptions, render_run
 

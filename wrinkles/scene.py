@@ -9,7 +9,7 @@ dataclass of the code that uses it::
     [newton]    NewtonOptions  -- tolerances of the body's Newton solver
     [time]      TimeOptions    -- number of frames (or end time), body steps per frame
     [output]    OutputOptions  -- which files, every N frames
-    [shell]     ShellOptions   -- the embedded shell (absent = body only), wrinkles/shell_stage.py
+    [shell]     ShellOptions   -- the embedded shell (absent = body only), wrinkles/shell_setup.py
     [rigid]     RigidOptions   -- rigid balls ([[rigid.balls]]) coupled two-way, models/rigid.py
 
 Tables that are absent keep their defaults; optional physics is off unless the scene asks for
@@ -27,14 +27,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from meshes.errors import InputError
 from models.body import BodyOptions
-from models.errors import InputError
 from models.materials import Material
 from models.rigid import RigidOptions, scheme
 from solvers.body_newton import NewtonOptions
-from wrinkles.config import Source, build, call_kwargs, load, to_dict
+from wrinkles.config import Source, build, call_kwargs, expert, flatten, load, to_dict, unflatten
 from wrinkles.output import OutputOptions
-from wrinkles.shell_stage import ShellOptions
+from wrinkles.shell_setup import ShellOptions
 
 BUILDERS: tuple[str, ...] = ("box", "cylinder", "sphere", "sofa")
 """Names of the gmsh mesh builders a scene may use (functions of the ``meshes`` package)."""
@@ -106,6 +106,40 @@ class TimeOptions:
 
 
 @dataclass(frozen=True)
+class NewtonKeys:
+    """``[newton]``: the body's Newton solver, named keys and an expert mapping.
+
+    Attributes:
+        rtol: relative tolerance on the residual norm.
+        atol: absolute tolerance on the residual norm [N].
+        max_it: Newton iterations per solve.
+        options: expert mapping of the other fields of
+            :class:`solvers.body_newton.NewtonOptions` (``line_search_type``, ``max_halvings``,
+            ...), including ``petsc``: PETSc options of the body's SNES / KSP / PC
+            (``"petsc.ksp_type" = "gmres"``), set last, as dolfinx passes ``petsc_options``.
+
+    """
+
+    rtol: float = 1e-9
+    atol: float = 1e-10
+    max_it: int = 50
+    options: dict[str, Any] = field(default_factory=dict)
+    internals: NewtonOptions = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "options", flatten(unflatten(self.options, "newton.options")))
+        for name in ("rtol", "atol"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise InputError(f"newton.{name} must be finite and >= 0, got {value}")
+        if self.max_it < 1:
+            raise InputError(f"newton.max_it must be >= 1, got {self.max_it}")
+        named = {"rtol": self.rtol, "atol": self.atol, "max_it": self.max_it}
+        object.__setattr__(self, "internals",
+                           expert(NewtonOptions, self.options, "newton.options", named))
+
+
+@dataclass(frozen=True)
 class Scene:
     """Everything one run simulates (the root table of a scene file).
 
@@ -129,7 +163,7 @@ class Scene:
     title: str = ""
     material: Material = field(default_factory=Material)
     body: BodyOptions = field(default_factory=BodyOptions)
-    newton: NewtonOptions = field(default_factory=NewtonOptions)
+    newton: NewtonKeys = field(default_factory=NewtonKeys)
     time: TimeOptions = field(default_factory=TimeOptions)
     output: OutputOptions = field(default_factory=OutputOptions)
     shell: ShellOptions | None = None

@@ -8,8 +8,8 @@ step ``k`` in its own file ``shell.steps/step_<k>.h5`` (:func:`wrinkles.output.s
 written to ``.work/`` and moved to its place by ``os.replace``, then the XML is rewritten
 through a temporary file + ``os.replace`` (the body series does the same), so a run killed at
 any moment keeps every completed frame readable, and a frame costs O(its own size) in HDF5
-bytes (series of session 1 stored every step in ``shell.h5`` as ``/Step_<k>/...`` and copied
-the whole file per frame; they are still read and resumed). On ``--resume`` the steps after
+bytes (older series with every step in ``shell.h5`` as ``/Step_<k>/...`` are still read and
+resumed). On ``--resume`` the steps after
 the checkpoint are dropped (:func:`wrinkles.output.drop_steps_after`) and the rerun frames
 replace them.
 The XML is XDMF 3: one temporal collection of uniform
@@ -21,14 +21,26 @@ from __future__ import annotations
 
 import os
 import xml.etree.ElementTree as ET
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
 import numpy as np
 
-from models.errors import InputError
-from wrinkles.output import WORK_DIR, XI, XML_HEADER, drop_steps_after, step_file, write_text_atomic
+from meshes.errors import InputError
+from models.backend import MPI
+from wrinkles.collective import on_root
+from wrinkles.output import (
+    WORK_DIR,
+    XI,
+    XML_HEADER,
+    drop_steps_after,
+    parse_xdmf,
+    step_file,
+    write_text_atomic,
+)
+from wrinkles.shell_setup import Shell
 
 SHELL_XDMF_NAME = "shell.xdmf"
 FIELD_TYPES: dict[str, str] = {"displacement": "Vector", "bending_energy_density": "Scalar"}
@@ -71,8 +83,6 @@ class ShellSeries:
         cluster_id: ``(n,)`` cluster of each vertex (nearest centre).
         resume_after: ``None`` to start a new series; for a restart, the time [s] of the
             restored state: the existing series is kept without its steps after that time.
-        atomic: write the XML through a temporary file and ``os.replace``
-            (``OutputOptions.atomic``); steps always go to their own file.
 
     Raises:
         InputError: (resume) no series in ``path``, or its rest mesh is another one.
@@ -81,8 +91,8 @@ class ShellSeries:
 
     def __init__(self, path: Path, rest: np.ndarray, faces: np.ndarray,
                  cluster_id: np.ndarray, resume_after: float | None = None,
-                 atomic: bool = True) -> None:
-        self.path, self.h5_path, self.atomic = path, path.with_suffix(".h5"), atomic
+                 ) -> None:
+        self.path, self.h5_path = path, path.with_suffix(".h5")
         self.work = path.parent / WORK_DIR / "shell_step.h5"
         self.n, self.m = rest.shape[0], faces.shape[0]
         self.times: list[float] = []
@@ -147,7 +157,7 @@ class ShellSeries:
         return "      " + ET.tostring(grid, encoding="unicode").rstrip() + "\n"
 
     def _write_xml(self) -> None:
-        """Rewrite the XML (all steps so far), atomically unless ``atomic`` is off.
+        """Rewrite the XML (all steps so far) atomically.
 
         The text of the steps already written is kept (``_grids``), so a frame serialises
         only its own grid and writes the concatenation (about 1 kB per step).
@@ -156,7 +166,7 @@ class ShellSeries:
         text = (f'{XML_HEADER}<Xdmf Version="3.0" xmlns:xi="{XI[1:-1]}">\n  <Domain>\n'
                 '    <Grid Name="shell" GridType="Collection" CollectionType="Temporal">\n'
                 + "".join(self._grids) + "    </Grid>\n  </Domain>\n</Xdmf>\n")
-        write_text_atomic(self.path, text, self.atomic)
+        write_text_atomic(self.path, text)
 
 
 def step_sources(path: Path) -> tuple[list[float], list[tuple[str, str]]]:
@@ -166,7 +176,7 @@ def step_sources(path: Path) -> tuple[list[float], list[tuple[str, str]]]:
     files, ``/Step_<k>`` for series written before them).
     """
     times, sources = [], []
-    for grid in ET.parse(path).getroot().iter("Grid"):
+    for grid in parse_xdmf(path).getroot().iter("Grid"):
         time = grid.find("Time")
         item = grid.find("Attribute[@Name='displacement']/DataItem")
         if time is None or item is None or not item.text:
@@ -197,4 +207,33 @@ def read_shell_series(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     return rest, faces, cluster_id, frames
 
 
-__all__ = ["SHELL_XDMF_NAME", "ShellFrame", "ShellSeries", "read_shell_series", "step_sources"]
+__all__ = ["SHELL_XDMF_NAME", "ShellFrame", "ShellSeries", "Writer", "make_writer",
+           "read_shell_series", "shell_frame", "step_sources"]
+
+
+Writer = Callable[[int, float], None]
+"""``write(frame, t)``: append the shell's current state to its series (when the frame is due)."""
+
+
+def shell_frame(shell: Shell, t: float) -> ShellFrame:
+    """Return the output fields of the current state."""
+    return ShellFrame(t, shell.x - shell.rest, shell.energy.bending_density(shell.x))
+
+
+def make_writer(shell: Shell, out: Path, comm: MPI.Comm, writes: Callable[[int], bool],
+                resume_after: float | None = None) -> Writer:
+    """Create ``shell.xdmf`` with the rest state (t = 0); return ``write(frame, t)``.
+
+    With ``resume_after`` (time [s] of the restored state) the existing series is continued
+    instead, without its steps after that time (collective: errors are raised on all ranks).
+    """
+    path, faces, cid = out / SHELL_XDMF_NAME, shell.topology.faces, shell.clusters.partition
+    series = on_root(comm, lambda: ShellSeries(path, shell.rest, faces, cid, resume_after))
+    if series is not None and resume_after is None:
+        series.write(shell_frame(shell, 0.0))
+
+    def write(frame: int, t: float) -> None:
+        if series is not None and writes(frame):
+            series.write(shell_frame(shell, t))
+
+    return write

@@ -40,9 +40,9 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
+from meshes.errors import InputError
 from models.backend import MPI, dolfinx
 from models.embedding.surface import Surface, boundary_surface
-from models.errors import InputError
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -221,9 +221,8 @@ def _colliding_pairs(maps: AffineMaps, tree: Any, points: FloatArray, tol: float
     """``(point, cell)`` pairs of the owned cells containing each point (facets included).
 
     Bounding-box candidates are tested with the barycentric coordinates of the affine map
-    (``min >= -tol``), in chunks to bound memory. This replaces
-    ``dolfinx.geometry.compute_colliding_cells`` (a GJK distance per candidate): for 98k
-    points in 3072 cells it took 5.7 s, the whole ``build_embedding`` now takes 0.18 s.
+    (``min >= -tol``), in chunks to bound memory: much cheaper than
+    ``dolfinx.geometry.compute_colliding_cells`` (a GJK distance per candidate).
     """
     pts_out, cells_out = [], []
     for start in range(0, points.shape[0], _CHUNK):

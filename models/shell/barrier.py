@@ -1,13 +1,7 @@
 """Flip barrier of the discrete shell: a face energy, unbounded before a face folds over.
 
-Why (issue 8, measured on the sliver scene of ``tests/test_extremes_matrix.py``): with the
-draft's energy (edge springs + hinges, no area term) nothing resists a face collapsing. A
-sliver's edge lengths change only to second order in its height, so the edge springs barely
-see it fold over, and at zero area its normal, hence the bend angle of its three hinges, is
-undefined: ``W`` has a cone singularity there (gradient ~ 1 / A). A rest sliver of quality 0.23
-under 15 % compression was flipped by the first shifted Newton step (signed area -0.39 A0),
-then pulled back and forth across zero area until the iterate sat on the singularity
-(A / A0 ~ 2e-10, ||g|| ~ 1e5) and the solve stagnated at W = 54.5.
+Without it nothing resists a face collapsing: a sliver's edge lengths change only to second
+order in its height, and at zero area the hinge angles are undefined (docs/notes/flip-barrier.md).
 
 The barrier makes that singular set unreachable. Per face ``f`` with rest area ``A0_f`` and a
 unit reference normal ``r_f`` (the rest normal, or the normal of the face on the current
@@ -38,11 +32,8 @@ Derivatives (cyclic a, b = a + 1; ``d_a = x_{a+2} - x_{a+1}`` as in
 and ``d2W = w (b'' grad s grad s^T + b' d2s)``. The second part is indefinite (skew blocks);
 "gauss_newton" drops it (``b'' > 0`` keeps the rest PSD), "projected" clamps each 9x9 block.
 
-Weights: with ``w = A0`` the barrier energy of a sliver would vanish with its area, and a
-line search would happily put it at ``s ~ 1e-4`` (measured at q = 2.3e-3: the exact Newton
-then needed shifts tau ~ 1.4e8 and did not converge in 200 iterations). ``w = A0 / q`` is the
-area of the equilateral triangle with the same sum of squared edges: the barrier holds a
-sliver as firmly as a regular face of its size (force on a vertex ``b'(s) |d_a| / (2 q)``).
+Weights w = A0 / q: the area of the equilateral triangle with the same sum of squared edges,
+so the barrier holds a sliver as firmly as a regular face of its size.
 """
 
 from __future__ import annotations
@@ -50,7 +41,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from models.errors import InputError
+from meshes.errors import InputError
 from models.shell.assembly import (
     HessianMode,
     HessianSink,
@@ -60,7 +51,7 @@ from models.shell.assembly import (
     project_psd_blocks,
     scatter_block,
 )
-from models.shell.membrane import _cyclic_sign, _skew_entry
+from models.shell.membrane import cyclic_sign, skew_entry
 from models.shell.rest import face_normals, squared_edges
 from models.shell.schedule import StencilSchedule
 
@@ -130,12 +121,12 @@ def _flip_kernel(index: np.ndarray, x: np.ndarray, faces: np.ndarray, rest_area:
         kb = scratch if fused else blocks[f]
         for a in range(3):
             for bb in range(3):
-                sgn = _cyclic_sign(a, bb)
+                sgn = cyclic_sign(a, bb)
                 for p in range(3):
                     for q in range(3):
                         kb[3 * a + p, 3 * bb + q] = (
                             cg * gs[a, p] * gs[bb, q]
-                            + cc * sgn * _skew_entry(r0, r1, r2, p, q))
+                            + cc * sgn * skew_entry(r0, r1, r2, p, q))
         if fused:
             scatter_block(data, faces[f], base[f], row_len, scratch, 1.0)
     return 0.0

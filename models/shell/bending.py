@@ -17,31 +17,9 @@ Derivatives (exact, Tamstorf & Grinspun 2013):
 ``hessian_mode``: "exact"; "gauss_newton" drops the indefinite second part; "projected" clamps
 the eigenvalues of each exact 12x12 block to >= 0.
 
-Continuum limit (derived here, verified in ``tests/test_shell_bending_limits.py`` and against
-scikit-fem's Morley plate in ``tests/test_shell_bending_skfem.py``). For a smooth surface,
-locally the graph of ``w`` with second fundamental form ``K = [[A, B], [B, C]]`` (principal
-curvatures ``k1, k2``), a hinge angle is ``theta = (grad w_1 - grad w_0) . m`` (jump of the P1
-interpolant gradient across the edge, ``m`` the in-plane edge normal), which is *not* the
-normal curvature times the centroid distance. On the equilateral lattice of edge ``a`` an
-edge with tangent ``t`` and in-plane normal ``m`` gets ``theta = a (3 k_mm - k_tt) / (2 sqrt 3)``;
-summing the three edge directions gives the energy density
-
-    sum_h w_h theta_h^2 / area -> (k1 + k2)^2 + 2 (k1 - k2)^2
-                                = 3 [(Delta w)^2 - 2 (1 - nu) (w_xx w_yy - w_xy^2)], nu = -1/3,
-
-isotropic (independent of the lattice orientation). So on equilateral meshes a sphere gives
-``int (k1+k2)^2 dA = 16 pi`` but a cylinder of radius R gives ``3 int R^-2 dA``: with
-``k_B = D/2``, W_B is 3x the plate energy ``D/2 int R^-2 dA`` (measured, Richardson-
-extrapolated: 2.9999-3.0000 at lattice angles 0, 17 and 90 degrees). The often quoted
-"(k1+k2)^2 + 1/2 (k1-k2)^2 = 3/2 x plate energy with nu = 1/3" follows from the
-centroid-distance argument and is wrong for this weight (measured 3, not 1.5). Right-triangle
-grids of spacing a (all diagonals from (i, j) to (i+1, j+1)) give ``3 (A+B)^2 + 3 (B+C)^2 +
-12 B^2`` and the alternating (checkerboard) grid ``3 A^2 + 3 C^2 + 12 B^2`` (anisotropic: a
-cylinder bent along a grid line gives 3, along the diagonal 9 (right; measured 8.998) or 4.5
-(alternate; measured 4.499), along the other diagonal of the right grid exactly 3). For an
-isotropic ``K = k I`` any triangle gives ``3 k^2 / (4 A^2) sum_a |e_a|^4 cot^2 alpha_a``
-(= 4 k^2 only for equilateral, 6 k^2 for right isosceles triangles), so an icosphere, which is
-not equilateral, converges to 1.0156 x 16 pi (measured 1.01567, predicted 1.01561).
+Continuum limit: on equilateral meshes the energy density tends to (k1 + k2)^2 + 2 (k1 - k2)^2,
+3x a plate with nu = -1/3, so a cylindrical bend costs 3x the plate energy with k_B = D/2
+(derivation and measurements: docs/notes/hinge-bending-limit.md).
 """
 
 from __future__ import annotations
@@ -49,23 +27,23 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from models.errors import InputError
+from meshes.errors import InputError
 from models.shell.assembly import (
     HessianMode,
     HessianSink,
     TermEval,
-    _project_psd,
     check_hessian_mode,
     check_order,
+    project_psd,
     project_psd_blocks,
     scatter_block,
     translation_complement,
 )
 from models.shell.hinge_angle import (
-    _theta_derivs_one,
-    _theta_one,
     check_hinge_arrays,
     hinge_angles,
+    theta_derivs_one,
+    theta_one,
 )
 from models.shell.schedule import StencilSchedule
 
@@ -121,9 +99,9 @@ def _bending_kernel(index: np.ndarray, x: np.ndarray, hinges: np.ndarray, theta0
         h = index[ii]
         hb = blocks[h] if (order >= 2 and not fused) else scratch
         if order == 0:
-            theta = _theta_one(x, hinges[h])
+            theta = theta_one(x, hinges[h])
         else:
-            theta = _theta_derivs_one(x, hinges[h], g, hb, order >= 2 and mode == 0)
+            theta = theta_derivs_one(x, hinges[h], g, hb, order >= 2 and mode == 0)
         d = theta - theta0[h]
         energies[h] = weights[h] * d * d
         total += energies[h]
@@ -136,7 +114,7 @@ def _bending_kernel(index: np.ndarray, x: np.ndarray, hinges: np.ndarray, theta0
             _fill_block(hb, g, 2.0 * weights[h], d, mode == 0)
             if fused:
                 if project:
-                    _project_psd(scratch3, q)
+                    project_psd(scratch3, q)
                 scatter_block(data, hinges[h], base[h], row_len, scratch, 1.0)
     return total
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.errors import InputError
+from meshes.errors import InputError
 
 DIM: int = 3
 """Spatial dimension: every vertex carries three dofs."""

@@ -25,12 +25,13 @@ merged into that pattern once ("assembled") or returned as the factor ``G`` with
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from functools import partial
+from typing import Any, Literal, Protocol
 
 import numpy as np
 import scipy.sparse as sp
 
-from models.errors import InputError
+from meshes.errors import InputError
 from models.shell.assembly import (
     HessianMode,
     HessianSink,
@@ -57,7 +58,46 @@ from models.shell.topology import ShellTopology
 
 PenaltyHessian = Literal["assembled", "low_rank"]
 
-THREADED_TERMS: tuple[str, ...] = ("membrane_edge", "bending", "flip_barrier")
+
+class Kernel(Protocol):
+    """A stencil term's kernel: ``kernel(x, stencils, order=, hessian_mode=, ...) -> TermEval``.
+
+    Pure in the positions: the rest state and the stiffness are bound when the term is made
+    (:class:`StencilTerm`); ``sink`` and ``schedule`` are passed to fused kernels only.
+    """
+
+    def __call__(self, x: np.ndarray, stencils: np.ndarray, *, order: int,
+                 hessian_mode: HessianMode, **fused: Any) -> TermEval:
+        """Value, gradient and local Hessian blocks (or blocks added into ``sink``)."""
+
+
+@dataclass(frozen=True)
+class StencilTerm:
+    """One local term of the composite energy: a kernel over a fixed stencil array.
+
+    Every local term is evaluated, patterned and assembled the same way by
+    :class:`ShellEnergy`, which is a loop over its terms: a new energy term is a pure kernel
+    (value, gradient, local Hessian blocks of each stencil) and one more ``StencilTerm``.
+
+    Attributes:
+        name: key of the term in :attr:`ShellEval.terms` and ``elements``.
+        stencils: ``(m, k)`` int64 vertex indices of the m stencils.
+        kernel: the term's kernel with its rest data and stiffness bound.
+        fused: the kernel accepts ``sink`` (blocks added straight into the CSR data) and
+            ``schedule`` (race-free threads); otherwise it returns its blocks.
+
+    """
+
+    name: str
+    stencils: np.ndarray
+    kernel: Kernel
+    fused: bool = True
+
+    def evaluate(self, x: np.ndarray, order: int, mode: HessianMode,
+                 sink: HessianSink | None, schedule: StencilSchedule | None) -> TermEval:
+        """Evaluate the term (its stiffness included)."""
+        fused = {"sink": sink, "schedule": schedule} if self.fused else {}
+        return self.kernel(x, self.stencils, order=order, hessian_mode=mode, **fused)
 """The terms whose kernels take a :class:`~models.shell.schedule.StencilSchedule` (the area
 membrane runs serially)."""
 
@@ -70,14 +110,8 @@ class ShellParams:
     edge 1e3, bending 1e-1, penalty 1e3; the area term is off. Physical values come from
     :mod:`models.shell.stiffness`. The flip barrier is on for every face (``k_F = 1e3``,
     active below ``s = 0.1``); it is exactly zero unless a face shrinks / tilts to a tenth of
-    its rest area projected on its reference normal. It is what lets accepted rest slivers
-    converge (issue 8, ``tests/test_extremes_matrix.py``: without it the sliver scene
-    stagnated at rest qualities q = 0.0023 .. 0.465, q = 0.498 converged). It covers regular
-    faces too because the exact-Hessian Newton folds those as well: with the barrier on the
-    faces of q < 0.5 only, a q >= 0.5 neighbour of the q = 0.465 sliver collapsed (s = 5e-11,
-    200 iterations), and in frame 3 of ``scenes/default.toml`` the converged shell without the
-    barrier has a face next to the edge y = z = 0 turned over (s = -0.26); with it that frame
-    is fold-free at +1.4 % shell energy (frames 1-2 bitwise unchanged, frame 4 -0.007 %).
+    its rest area projected on its reference normal. It lets accepted rest slivers converge
+    and keeps regular faces from folding too (docs/notes/flip-barrier.md).
     ``flip_quality = 0.5`` restricts it to near-degenerate faces, ``k_F = 0`` switches it off.
 
     Attributes:
@@ -181,18 +215,38 @@ class ShellEnergy:
         self._flip = flip_faces(topology, rest, params.flip_quality)
         self._flip_weights = barrier_weights(rest.positions, topology.faces[self._flip])
         self._bend_weights = params.k_B * rest.hinge_weights
+        self._terms = [term for term in self._local_terms() if term.stencils.shape[0] > 0]
         self._build_pattern()
 
-    def _stencils(self) -> dict[str, np.ndarray]:
-        """Stencil array of each active local term, in a fixed order."""
-        t, p = self.topology, self.params
-        active = {"membrane_edge": (p.k_L, t.edges), "membrane_area": (p.k_A, t.faces),
-                  "bending": (p.k_B, t.hinges), "flip_barrier": (p.k_F, t.faces[self._flip])}
-        return {name: st for name, (k, st) in active.items() if k > 0 and st.shape[0] > 0}
+    def _local_terms(self) -> list[StencilTerm]:
+        """Return the local terms with a positive stiffness, in a fixed order."""
+        t, p, r = self.topology, self.params, self.rest
+        k = self._flip
+        terms = []
+        if p.k_L > 0:
+            terms.append(StencilTerm("membrane_edge", t.edges, partial(
+                edge_membrane, rest_len=r.rest_lengths, stiffness=p.k_L)))
+        if p.k_A > 0:
+            terms.append(StencilTerm("membrane_area", t.faces, partial(
+                area_membrane, rest_area=r.rest_areas, stiffness=p.k_A), fused=False))
+        if p.k_B > 0:
+            terms.append(StencilTerm("bending", t.hinges, partial(
+                hinge_bending, theta0=r.rest_angles, weights=self._bend_weights)))
+        if p.k_F > 0:
+            terms.append(StencilTerm("flip_barrier", t.faces[k], partial(
+                self._flip_kernel, rest_area=r.rest_areas[k], weight=self._flip_weights)))
+        return terms
+
+    def _flip_kernel(self, x: np.ndarray, faces: np.ndarray, *, rest_area: np.ndarray,
+                     weight: np.ndarray, **kw: Any) -> TermEval:
+        """Evaluate the flip barrier with the current reference normals (they follow y)."""
+        p = self.params
+        return flip_barrier(x, faces, rest_area, weight, self._ref_normals[self._flip],
+                            s_hat=p.flip_activation, stiffness=p.k_F, **kw)
 
     def _build_pattern(self) -> None:
         """Build the fixed CSR pattern of active stencils (+ H^T H when assembled) once."""
-        stencils = self._stencils()
+        stencils = {term.name: term.stencils for term in self._terms}
         assembled = self._penalty is not None and self.params.penalty_hessian == "assembled"
         gram = penalty_gram(self._penalty) if assembled and self._penalty else None
         self.pattern = StencilPattern.from_stencils(
@@ -200,8 +254,8 @@ class ShellEnergy:
             extra=[gram] if gram is not None else [])
         self._maps: dict[str, ScatterMap] = dict(zip(stencils, self.pattern.maps, strict=True))
         parts = vertex_parts(self.topology.faces, self.n_vertices, self.params.threads)
-        self._schedules = {name: StencilSchedule.build(st, parts)
-                           for name, st in stencils.items() if name in THREADED_TERMS}
+        self._schedules = {term.name: StencilSchedule.build(term.stencils, parts)
+                           for term in self._terms if term.fused}
         self._hess_base = (self.pattern.extra_data(0, gram, 2.0 * self.params.k_P)
                            if gram is not None else None)
         self._factor = (penalty_factor(self._penalty, self.params.k_P)
@@ -261,38 +315,18 @@ class ShellEnergy:
 
     def _term_evals(self, x: np.ndarray, order: int, mode: HessianMode,
                     data: np.ndarray | None = None) -> dict[str, TermEval]:
-        """Evaluate every active term (stiffness already included).
+        """Evaluate every active term (stiffness included).
 
-        With ``data`` (order 2) the edge, hinge and flip-barrier kernels add their blocks
-        straight into it (:class:`models.shell.assembly.HessianSink`); the other terms (and
-        the barrier's projected mode) return blocks.
+        With ``data`` (order 2) the fused kernels add their blocks straight into it
+        (:class:`models.shell.assembly.HessianSink`); the others return blocks.
         """
-        p, t, r = self.params, self.topology, self.rest
-        out: dict[str, TermEval] = {}
-        if "membrane_edge" in self._maps:
-            out["membrane_edge"] = edge_membrane(x, t.edges, r.rest_lengths, order=order,
-                                                 hessian_mode=mode, stiffness=p.k_L,
-                                                 sink=self._sink("membrane_edge", data),
-                                                 schedule=self._schedules["membrane_edge"])
-        if "membrane_area" in self._maps:
-            out["membrane_area"] = area_membrane(x, t.faces, r.rest_areas, order=order,
-                                                 hessian_mode=mode, stiffness=p.k_A)
-        if "bending" in self._maps:
-            out["bending"] = hinge_bending(x, t.hinges, r.rest_angles, self._bend_weights,
-                                           order=order, hessian_mode=mode,
-                                           sink=self._sink("bending", data),
-                                           schedule=self._schedules["bending"])
-        if "flip_barrier" in self._maps:
-            k = self._flip
-            out["flip_barrier"] = flip_barrier(x, t.faces[k], r.rest_areas[k], self._flip_weights,
-                                               self._ref_normals[k],
-                                               s_hat=p.flip_activation, order=order,
-                                               hessian_mode=mode, stiffness=p.k_F,
-                                               sink=self._sink("flip_barrier", data),
-                                               schedule=self._schedules["flip_barrier"])
+        out = {term.name: term.evaluate(x, order, mode,
+                                        self._sink(term.name, data) if term.fused else None,
+                                        self._schedules.get(term.name))
+               for term in self._terms}
         if self._penalty is not None:
             out["penalty"] = penalty_term(x, self._target, self._penalty, order=min(order, 1),
-                                          stiffness=p.k_P)
+                                          stiffness=self.params.k_P)
         return out
 
     def evaluate(self, x: np.ndarray, order: int = 2,

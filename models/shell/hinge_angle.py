@@ -1,7 +1,6 @@
 """Signed hinge (dihedral) bend angle with its exact gradient and Hessian.
 
-This is the bending *discretisation* (geometry only); the energy and its material weights
-live in :mod:`models.shell.bending`.
+Geometry only; the energy and its weights are in :mod:`models.shell.bending`.
 
 Hinge convention (fixed for the whole shell code): ``hinges`` is ``(Hn, 4)`` int64
 ``[i, j, k, l]``. The interior edge is ``(i, j)``; face 0 is ``(i, j, k)`` and face 1 is
@@ -16,9 +15,7 @@ the bend angle is the half-angle ``atan2`` form (never ``acos``, exact near 0 an
     theta = 2 atan2((n0 x n1) . e_hat, n0 . n1 + |n0| |n1|)  in (-pi, pi],
 
 evaluated as ``sign((n0 x n1) . e) 2 atan2(|u - v|, |u + v|)`` with unit normals ``u, v``
-(the same number, but without the cancellation of ``n0 . n1 + |n0||n1|`` near +-pi: the
-Taylor tests at ``theta = +-(pi - 1e-3)`` fail with the literal form, the error being
-``~ 1e-16 / sin(theta)``).
+(no cancellation near +-pi).
 
 ``theta = 0`` for a flat hinge. Sign: ``theta > 0`` for a *convex* fold, i.e. when the two
 faces bend away from the side their normals point to (a roof ridge seen from outside a closed
@@ -33,16 +30,7 @@ Jacobians", Graph. Models 75(6)). Each face ``(p, q, r)`` with edge ``e' = x_q -
     f = |e| n / |n|^2 = n_hat / h,        t = (x_r - x_p) . e' / |e|^2,
     d theta/d x_p += (1 - t) f,   d theta/d x_q += t f,   d theta/d x_r += -f.
 
-(``t`` is the position of the foot of the height on the edge; moving ``x_r`` along ``-n_hat``
-by ``delta`` rotates the face about the edge by ``delta / h``, which increases ``theta``.)
-
-Hessian: differentiate each face's contribution once more. With ``c_p = x_r - x_q``,
-``c_q = -(x_r - x_p)``, ``c_r = e'`` (so that ``dn/dx_b = [c_b]_x``), ``sigma = (-1, 1, 0)``
-(``d|e|/dx_b = sigma_b e'^T/|e|``), weights ``w = (1 - t, t, -1)``:
-
-    df/dx_b = f (sigma_b e'/|e|^2 - 2 (n x c_b)/|n|^2)^T + (|e|/|n|^2) [c_b]_x,
-    dt/dx_r = e'/|e|^2,  dt/dx_q = (x_r - x_p - 2 t e')/|e|^2,  dt/dx_p = -(dt/dx_q + dt/dx_r),
-    H_ab += f (dw_a/dx_b)^T + w_a df/dx_b      (dw_p = -dt, dw_q = dt, dw_r = 0).
+Hessian: each face's contribution differentiated once more (:func:`_face_hess`).
 
 Only ``|n|^2 > 0`` and ``|e| > 0`` are needed: near-degenerate faces (height/edge ~ 1e-3 or
 smaller) give finite, accurate values; ``theta`` near +-pi is handled by ``atan2`` (the
@@ -55,7 +43,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from models.errors import InputError
+from meshes.errors import InputError
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -119,7 +107,16 @@ def _face_grad(xp: tuple, xq: tuple, xr: tuple, slots: tuple, g: np.ndarray) -> 
 @njit(cache=True, inline="always", error_model="numpy")
 def _face_hess(xp: tuple, xq: tuple, xr: tuple, slots: tuple, n: tuple, f: tuple, t: float,
                hess: np.ndarray) -> None:
-    """Add one face's ``d^2 theta/dx^2`` to ``hess`` (12, 12) (formulas in module docstring)."""
+    """Add one face's ``d^2 theta/dx^2`` to ``hess`` (12, 12).
+
+    With the module docstring's face quantities, ``c_p = x_r - x_q``,
+    ``c_q = -(x_r - x_p)``, ``c_r = e'`` (so that ``dn/dx_b = [c_b]_x``), ``sigma = (-1, 1, 0)``
+    (``d|e|/dx_b = sigma_b e'^T/|e|``), weights ``w = (1 - t, t, -1)``:
+
+        df/dx_b = f (sigma_b e'/|e|^2 - 2 (n x c_b)/|n|^2)^T + (|e|/|n|^2) [c_b]_x,
+        dt/dx_r = e'/|e|^2,  dt/dx_q = (x_r - x_p - 2 t e')/|e|^2,  dt/dx_p = -(dt/dx_q + dt/dx_r),
+        H_ab += f (dw_a/dx_b)^T + w_a df/dx_b      (dw_p = -dt, dw_q = dt, dw_r = 0).
+    """
     e = _sub(xq, xp)
     a = _sub(xr, xp)
     s2 = _dot(e, e)
@@ -151,7 +148,7 @@ def _face_hess(xp: tuple, xq: tuple, xr: tuple, slots: tuple, n: tuple, f: tuple
 
 
 @njit(cache=True, error_model="numpy")
-def _theta_derivs_one(x: np.ndarray, hinge: np.ndarray, g: np.ndarray, hess: np.ndarray,
+def theta_derivs_one(x: np.ndarray, hinge: np.ndarray, g: np.ndarray, hess: np.ndarray,
                       want_hess: bool) -> float:
     """Angle of one hinge; overwrite ``g`` (12,) and, if asked, ``hess`` (12, 12)."""
     xi, xj = _point(x, hinge[0]), _point(x, hinge[1])
@@ -167,10 +164,10 @@ def _theta_derivs_one(x: np.ndarray, hinge: np.ndarray, g: np.ndarray, hess: np.
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _theta_one(x: np.ndarray, hinge: np.ndarray) -> float:
+def theta_one(x: np.ndarray, hinge: np.ndarray) -> float:
     """Angle of one hinge without its derivatives (the line search's energy values).
 
-    The same normals and formula as :func:`_theta_derivs_one`, so bitwise the same value.
+    The same normals and formula as :func:`theta_derivs_one`, so bitwise the same value.
     """
     xi, xj = _point(x, hinge[0]), _point(x, hinge[1])
     e = _sub(xj, xi)
@@ -184,7 +181,7 @@ def _theta_all(x: np.ndarray, hinges: np.ndarray) -> np.ndarray:
     """Bend angles of all hinges (value only)."""
     out = np.empty(hinges.shape[0])
     for h in range(hinges.shape[0]):
-        out[h] = _theta_one(x, hinges[h])
+        out[h] = theta_one(x, hinges[h])
     return out
 
 
@@ -198,7 +195,7 @@ def _theta_derivs_all(x: np.ndarray, hinges: np.ndarray, want_hess: bool) -> tup
     scratch = np.empty((12, 12))
     for h in range(nh):
         out = hess[h] if want_hess else scratch
-        theta[h] = _theta_derivs_one(x, hinges[h], grads[h], out, want_hess)
+        theta[h] = theta_derivs_one(x, hinges[h], grads[h], out, want_hess)
     return theta, grads, hess
 
 

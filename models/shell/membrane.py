@@ -153,7 +153,7 @@ def edge_membrane(x: np.ndarray, edges: np.ndarray, rest_len: np.ndarray, *, ord
 
 
 @numba.njit(cache=True, inline="always")
-def _skew_entry(c0: float, c1: float, c2: float, p: int, q: int) -> float:  # pragma: no cover
+def skew_entry(c0: float, c1: float, c2: float, p: int, q: int) -> float:  # pragma: no cover
     """Entry (p, q) of the cross-product matrix ``[c]_x`` (``[c]_x y = c x y``)."""
     if p == q:
         return 0.0
@@ -165,7 +165,7 @@ def _skew_entry(c0: float, c1: float, c2: float, p: int, q: int) -> float:  # pr
 
 
 @numba.njit(cache=True, inline="always")
-def _cyclic_sign(a: int, b: int) -> float:  # pragma: no cover
+def cyclic_sign(a: int, b: int) -> float:  # pragma: no cover
     """-1 if b follows a in the cyclic order (0, 1, 2), +1 if a follows b, 0 if a == b.
 
     The sign of the cross-product block ``d^2 A / dx_a dx_b`` of a triangle's area vector.
@@ -216,15 +216,15 @@ def _area_kernel(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, stiffn
             for a in range(3):  # sk[a] = (I - n_hat n_hat^T) [d_a]_x
                 for p in range(3):
                     for q in range(3):
-                        s = _skew_entry(d[a, 0], d[a, 1], d[a, 2], p, q)
-                        proj = (h0 * _skew_entry(d[a, 0], d[a, 1], d[a, 2], 0, q)
-                                + h1 * _skew_entry(d[a, 0], d[a, 1], d[a, 2], 1, q)
-                                + h2 * _skew_entry(d[a, 0], d[a, 1], d[a, 2], 2, q))
+                        s = skew_entry(d[a, 0], d[a, 1], d[a, 2], p, q)
+                        proj = (h0 * skew_entry(d[a, 0], d[a, 1], d[a, 2], 0, q)
+                                + h1 * skew_entry(d[a, 0], d[a, 1], d[a, 2], 1, q)
+                                + h2 * skew_entry(d[a, 0], d[a, 1], d[a, 2], 2, q))
                         hp = h0 if p == 0 else (h1 if p == 1 else h2)
                         sk[a, p, q] = s - hp * proj
         for a in range(3):
             for b in range(3):
-                sgn = _cyclic_sign(a, b)
+                sgn = cyclic_sign(a, b)
                 for p in range(3):
                     for q in range(3):
                         hab = cg * ga[a, p] * ga[b, q]
@@ -232,7 +232,7 @@ def _area_kernel(x: np.ndarray, faces: np.ndarray, rest_area: np.ndarray, stiffn
                             m = 0.0
                             for t in range(3):  # [d_a]_x^T P [d_b]_x = sk_a^T sk_b (P idempotent)
                                 m += sk[a, t, p] * sk[b, t, q]
-                            nh = sgn * _skew_entry(h0, h1, h2, p, q)
+                            nh = sgn * skew_entry(h0, h1, h2, p, q)
                             hab += cc * 0.5 * (m / nn + nh)
                         blocks[f, 3 * a + p, 3 * b + q] = hab
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from models.errors import InputError
+from meshes.errors import InputError
 from models.shell.assembly import TermEval, check_order
 
 

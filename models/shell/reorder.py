@@ -27,13 +27,7 @@ The methods:
   Hessian rows) that stays in cache.
 * ``"none"``: the identity.
 
-Measured (session 2, ``benchmarks/shell_kernels.py --clock cpu``, process CPU time on a
-shared machine, full ``evaluate(order=2)`` without the flip barrier, us per vertex): icosphere
-40k vertices none 2.11, Morton 1.66, RCM 1.27; 160k none 2.23, Morton 1.69, RCM 1.34 (1.47
-with the flip barrier; assembly 0.036 us per 3x3 block); jittered plate 40k
-(its lattice order is already a scanline) none 1.31, Morton 1.58, RCM 1.34. Mean / max
-``|i - j|`` over the edges of the level-5 icosphere: 3521 / 7685 as generated, Morton 125 /
-6417, RCM 89 / 161.
+Measured kernel times per ordering: docs/notes/vertex-ordering.md.
 
 Output order: callers that must return data in the caller's original vertex order map it
 back with :meth:`VertexOrdering.to_original` (``x_old = x_new[inverse]``) and
@@ -48,7 +42,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from models.errors import InputError
+from meshes.errors import InputError
 
 REORDER_METHODS: tuple[str, ...] = ("morton", "rcm", "none")
 _MORTON_BITS = 21

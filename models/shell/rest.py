@@ -15,32 +15,8 @@ whose shape quality ``q = 4 sqrt(3) A / (|e0|^2 + |e1|^2 + |e2|^2)`` (1 for an e
 triangle, 0 for a degenerate one) is below ``min_quality`` (default :data:`MIN_QUALITY`), is
 refused too, naming the face and its quality; pass ``min_quality=0`` to allow it.
 
-Why slivers below q = 1e-3 are refused (measured, issue 8, tests/test_extremes_matrix.py scene:
-level-2 subdivided box surface, 15 % compression, one face squashed): the normal of a sliver
-moves like ``|e| / (2 A)`` per unit vertex motion, so the bending Hessian grows like ``1 / q^2``
-(``||H(x0)||_1`` = 5.7e5 at q = 0.87, 1.0e8 at 2.3e-2, 1.1e10 at 2.3e-3, 1.1e16 at 2.3e-6;
-the hinge weights ``3 |e0|^2 / (A1 + A2)`` stay <= 10.7 since the neighbour is regular). The
-round-off floor of the gradient ``eps ||H|| ||x||`` (||x|| = 2.9) is 6.9e-6 at q = 2.3e-3 and,
-scaling like ``1 / q^2``, reaches the Newton tolerance ``rtol ||g0||`` = 3.2e-5 (rtol = 1e-8) at
-q ~ 1e-3; at q = 2.3e-6 it is ~7, far above the tolerance 3.5e-3: such a solve cannot converge
-in double precision.
-
-Accepted slivers (1e-3 <= q) converge since the flip barrier (:mod:`models.shell.barrier`,
-on by default). The cause of the earlier failure, measured on the same scene (q = 0.23 and
-2.3e-3): with k_A = 0 nothing resists a face collapsing - a sliver's edge lengths change only
-to second order in its height - and at zero area its normal, hence its hinges' angles, is
-undefined (a cone singularity of W, ``||g|| ~ 1 / A``). The first shifted Newton step flipped
-the q = 0.23 sliver (signed area -0.39 A0, W 143.5 -> 116.5), later steps pulled it back and
-forth across zero area and the iterate ended on the singularity (A / A0 ~ 2e-10, W frozen at
-54.476, ||g|| ~ 1e5, stagnation after 58 iterations). With the barrier the q = 2.3e-3 sliver
-settles at s = 0.095 (just below the activation 0.1: without a barrier the minimiser would
-collapse it; with ``k_F = 0`` even the projected Newton stalls at s = 1.4e-4, ||g|| = 5.9).
-Without the barrier the same scene also stagnated at q = 0.33, 0.43 and 0.465 (q = 0.498
-converged). The exact-Hessian Newton remains unreliable at q = 2.3e-3 even with the barrier
-(126 iterations in one measurement, not converged in 200 in another, against 26 with
-``far_hessian = "projected"``): the hinges of a sliver have an indefinite exact Hessian of
-size ~ 1 / q^2 and the global diagonal shift ``A + tau I`` that makes it definite
-(tau ~ 1e8) throttles every other unknown.
+Slivers below q = 1e-3 are refused because the bending Hessian grows like 1 / q^2 and the
+gradient's round-off floor then exceeds the Newton tolerance (docs/notes/flip-barrier.md).
 """
 
 from __future__ import annotations
@@ -49,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.errors import InputError
+from meshes.errors import InputError
 from models.shell.bending import hinge_weights
 from models.shell.dofs import check_positions
 from models.shell.hinge_angle import hinge_angles
@@ -127,6 +103,21 @@ def face_normals(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Unnormalised face normals ``(x_1 - x_0) x (x_2 - x_0)`` (F, 3) (twice the area vector)."""
     p0 = x[faces[:, 0]]
     return np.cross(x[faces[:, 1]] - p0, x[faces[:, 2]] - p0)
+
+
+def area_weighted_normals(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Sum of the incident faces' :func:`face_normals` per vertex (n, 3), not normalised."""
+    fn = face_normals(x, faces)
+    n = np.zeros((x.shape[0], 3), dtype=np.float64)
+    for k in range(3):
+        np.add.at(n, faces[:, k], fn)
+    return n
+
+
+def vertex_normals(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Return unit area-weighted vertex normals of a triangle mesh (n, 3)."""
+    n = area_weighted_normals(x, faces)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
 
 def face_areas(x: np.ndarray, faces: np.ndarray) -> np.ndarray:

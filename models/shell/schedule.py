@@ -12,10 +12,10 @@ interface, O(sqrt n) of them on a surface) for afterwards. :meth:`StencilSchedul
 the chunks concurrently on a shared thread pool (the kernels are compiled ``nogil``) and then
 the interface on the calling thread, so the result is deterministic for a given thread count.
 
-The same bands serve only the element kernels, whose calls are long (0.1-0.3 s at 160k
-vertices): a Python thread pool is cheap there. The multigrid's products (a few ms each) split
-their rows with :func:`balanced_cuts` and run them in numba ``prange`` loops instead
-(:mod:`solvers.multigrid`), since the pool's GIL hand-offs cost about a millisecond per call.
+The same bands serve only the element kernels, whose calls are long: a Python thread pool is
+cheap there. The multigrid's short products split their rows with :func:`balanced_cuts` and
+run them in numba ``prange`` loops instead (:mod:`solvers.multigrid`), since the pool's GIL
+hand-offs cost about a millisecond per call.
 
 With one thread the schedule is the identity (one chunk ``0 .. m - 1``, no interface): the
 same additions in the same order as the plain loop, bitwise. With several, each sum (energy,
@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from models.errors import InputError
+from meshes.errors import InputError
 from models.shell.reorder import vertex_adjacency
 
 _POOLS: dict[int, ThreadPoolExecutor] = {}

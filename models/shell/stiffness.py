@@ -29,18 +29,10 @@ Two mappings (:func:`membrane_stiffness`):
 Bending: ``k_B = D / 2 = E h^3 / (24 (1 - nu^2))`` (plate stiffness ``D = E h^3 / (12 (1 -
 nu^2))``), calibration "sphere". The hinge sum ``sum_h 3 |e|^2 / (A1 + A2) theta^2`` tends to
 the mean-curvature integral ``int (k1 + k2)^2 dA`` for a sphere (16 pi), so
-``k_B W_B ~ D/2 int (2H)^2 dA`` there. Other curvature states converge to lattice-dependent
-limits: on the equilateral lattice the hinge density tends to ``(k1 + k2)^2 + 2 (k1 - k2)^2``
-(:mod:`models.shell.bending`; re-measured in ``tests/test_shell_core_stiffness.py``: a
-cylinder of radius R gives ``3 / R^2`` per unit area in both lattice orientations), so with
-``D / 2`` a cylindrical bend (k2 = 0: the shape of a wrinkle) costs **3x** the plate energy
-``D/2 int k1^2 dA`` and the wrinkle wavelength ``~ D^(1/3)`` would come out ``3^(1/3) = 1.44x``
-too long. Calibration "cylinder" uses ``k_B = D / 6`` so that single-curvature bending
-(wrinkles, cylinders) is exact in the limit on equilateral-type meshes, at the price of a
-sphere energy 1/3 of the plate value. No single k_B matches both: the discrete energy equals
-3x a plate energy with Poisson ratio -1/3, whatever the material nu. Right-triangle grids are
-anisotropic (a cylinder along a grid line gives 3, along the diagonal 9 or 4.5: see
-:mod:`models.shell.bending`), so "cylinder" is calibrated for equilateral-type lattices only.
+``k_B W_B ~ D/2 int (2H)^2 dA`` there. On equilateral lattices a cylindrical bend (k2 = 0: the
+shape of a wrinkle) costs 3x the plate energy with ``D / 2`` (docs/notes/hinge-bending-limit.md),
+so calibration "cylinder" uses ``k_B = D / 6``: single-curvature bending is exact in the limit on
+equilateral-type meshes, a sphere then gets 1/3 of the plate value. No single k_B matches both.
 
 ARCSim's bending weight differs from ``D/2`` by a factor; :func:`bending_stiffness_from_arcsim`
 converts explicitly (see its docstring for the convention assumed).
@@ -53,7 +45,7 @@ from typing import Literal
 
 import numpy as np
 
-from models.errors import InputError
+from meshes.errors import InputError
 
 MembraneMapping = Literal["equibiaxial", "isotropic"]
 BendingCalibration = Literal["sphere", "cylinder"]

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.errors import InputError
+from meshes.errors import InputError
 
 
 @dataclass(frozen=True, eq=False)

@@ -4,9 +4,9 @@ Remillard & Kry (2013) give the coarse body a quadratic interior so that wrinkle
 along coarse element boundaries. This script runs the compressed-skin scene
 ``scenes/wrinkle_skin.toml`` twice, with a P1 and with a P2 body (``body.degree``), and for
 the shell's bending energy density per hinge ``e_h = E_h / ((A1 + A2) / 3)``
-(:func:`wrinkles.measure.hinge_energies`) on the bar's four lateral faces (away from the
+(:func:`validation.measure.hinge_energies`) on the bar's four lateral faces (away from the
 clamps and the bar's own edges, where energy concentrates for physical reasons) reports
-:func:`wrinkles.measure.edge_band_report` against the distance ``d_h`` of each hinge's rest
+:func:`validation.measure.edge_band_report` against the distance ``d_h`` of each hinge's rest
 midpoint to the nearest edge of the coarse boundary triangles:
 
 * ``ratio = F_E / F_A``: fraction of the bending energy within ``band`` of a coarse edge over
@@ -24,22 +24,17 @@ Writes ``<build>/data/artefacts.json`` (with the ``meta`` entry of ``common.writ
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "paper" / "scripts"))
+import numpy as np
+from common import DEFAULT_BUILD, write_json
 
-import numpy as np  # noqa: E402
-from common import DEFAULT_BUILD, write_json  # noqa: E402
-
-from models.backend import MPI  # noqa: E402
-from models.embedding.embedding import mesh_surface  # noqa: E402
-from wrinkles.measure import (  # noqa: E402
+from models.backend import MPI
+from models.embedding.embedding import mesh_surface
+from validation.measure import (
     coarse_edge_distances,
     edge_band_report,
     hinge_energies,
@@ -48,8 +43,10 @@ from wrinkles.measure import (  # noqa: E402
     shell_wavelength,
     unique_edges,
 )
-from wrinkles.runner import Run, prepare, run_frames  # noqa: E402
-from wrinkles.scene import load_scene  # noqa: E402
+from wrinkles.runner import Run, prepare, run_frames
+from wrinkles.scene import load_scene
+
+REPO = Path(__file__).resolve().parents[2]
 
 SCENE = REPO / "scenes" / "wrinkle_skin.toml"
 FULL = ["shell.subdivision.levels=3", "shell.skin.thickness=2.3986e-4"]

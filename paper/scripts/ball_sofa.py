@@ -1,17 +1,17 @@
 """The draft's experiment: a rigid ball dropped on the elastic sofa (two-way coupling).
 
 Runs ``python -m wrinkles run scenes/ball_sofa_coarse.toml --frames 10 --out
-BUILD/runs/ball_sofa`` through the runner of ``scenes.py`` (``tests/test_scenes_extra.py::
-run_scene``); quick mode keeps one shell subdivision level and does not render (the settings
-of ``tests/test_ball_sofa.py``), the full mode keeps the scene's two levels and its render
-and copies the shell frame of deepest penetration to ``figures/scene_ball_sofa.png``. (The
+BUILD/runs/ball_sofa`` through ``validation.scene_runs.run_scene``; quick mode keeps one shell
+subdivision level and does not render (the settings of
+``tests/test_wrinkles/test_scene_ball_sofa.py``), the full mode keeps the scene's two levels and its
+render and copies the shell frame of deepest penetration to ``figures/scene_ball_sofa.png``. (The
 75-frame ``scenes/ball_sofa.toml`` takes about 10 min on the shared machine: too slow for the
-paper build.) The numbers are read from the run's ``summary.json`` as the tests read them:
-per frame ``details.balls[0]`` (centre, velocity, contact force, penetration as a fraction
-of the radius), ``details.rigid_iterations`` (body solves per coupled step) and
-``details.momentum`` (impulse on the ball, on the sofa, of the contact and of the ground).
-Writes ``data/ball_sofa.json`` and ``figures/ball_sofa.png`` (height, vertical velocity and
-contact force against time).
+paper build.) The numbers are read from the run's ``summary.json`` as the tests read them: per
+frame ``details.balls[0]`` (centre, velocity, contact force, penetration as a fraction of the
+radius), ``details.rigid_iterations`` (body solves per coupled step) and ``details.momentum``
+(impulse on the ball, on the sofa, of the contact and of the ground). Writes
+``data/ball_sofa.json`` and ``figures/ball_sofa.png`` (height, vertical velocity and contact force
+against time).
 """
 
 from __future__ import annotations
@@ -27,12 +27,12 @@ from common import figure_path, parse_args, write_json
 
 SCENE = "ball_sofa_coarse"
 FRAMES = ("--frames", "10")
-QUICK = ("--set", "shell.subdivision.levels=1", "--set", "shell.render=false")
+QUICK = ("--set", "shell.subdivision.levels=1", "--set", "output.render=false")
 
 
 def run(out: Path, quick: bool) -> float:
     """Run the coarse ball-on-sofa scene (10 frames); return its wall time [s]."""
-    from tests.test_scenes_extra import run_scene
+    from validation.scene_runs import run_scene
 
     if out.exists():
         shutil.rmtree(out)  # a fresh run, never a resume of an older one
@@ -64,7 +64,8 @@ def impact_numbers(s: dict[str, np.ndarray], scene: dict[str, Any]) -> dict[str,
 
     The impact speed is the free-fall speed ``|w_{k-1} + g_z T|`` the ball would have at the
     end of the first contact frame ``k`` (frame duration ``T``), the definition of
-    ``tests/test_ball_sofa.py``; the rebound speed is the largest upward velocity after it.
+    ``tests/test_wrinkles/test_scene_ball_sofa.py``; the rebound speed is the largest upward velocity
+    after it.
     """
     contact = np.flatnonzero(s["force"] > 0.0)
     if contact.size == 0:

@@ -3,8 +3,8 @@
 Every script ``paper/scripts/<name>.py`` is run as ``python paper/scripts/<name>.py --build DIR
 [--quick]`` (``paper/make_paper.py`` does so) and writes ``DIR/data/<name>.json`` (every number
 the paper quotes from it, plus ``"figures"``: the PNG files it wrote under ``DIR/figures``).
-The scripts compute their numbers by calling the functions of the tests (``tests/test_*.py``)
-so that the paper and the test suite measure the same thing.
+The scripts compute their numbers with the functions the tests use (:mod:`validation`), so that
+the paper and the test suite measure the same thing.
 """
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ import argparse
 import json
 import os
 import platform
-import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -21,8 +20,6 @@ from typing import Any
 
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_BUILD = REPO / "paper" / "build"
-if str(REPO) not in sys.path:  # tests/ is imported as a namespace package from the repo root
-    sys.path.insert(0, str(REPO))
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("NUMBA_CACHE_DIR", str(REPO / ".cache" / "numba"))
 

@@ -1,7 +1,7 @@
 """Body convergence: manufactured-solution L2 errors of P1/P2 and Saint-Venant torsion.
 
-Calls ``tests/test_body_convergence.py::l2_error`` (the Neo-Hookean manufactured problem on
-the unit cube) and ``tests/test_body_rotation.py`` (the twisted P2 cylinder: torque against
+Calls ``tests/test_solvers/test_body_convergence.py::l2_error`` (the Neo-Hookean manufactured problem on
+the unit cube) and ``tests/test_solvers/test_body_rotation.py`` (the twisted P2 cylinder: torque against
 T = G J theta / L). Writes ``data/convergence.json`` and ``figures/body_convergence.png``,
 ``figures/torsion.png``.
 """
@@ -17,7 +17,7 @@ from common import figure_path, fitted_slope, loglog_figure, parse_args, write_j
 
 def body_rates(quick: bool) -> dict[str, Any]:
     """L2 errors and fitted rates of P1 and P2 on n^3 unit cubes (h = 1/n)."""
-    from tests.test_body_convergence import l2_error
+    from validation.manufactured import l2_error
 
     sizes = {1: (2, 4) if quick else (4, 8, 16), 2: (2, 4) if quick else (2, 4, 8)}
     out: dict[str, Any] = {}
@@ -31,7 +31,7 @@ def body_rates(quick: bool) -> dict[str, Any]:
 
 def torsion(quick: bool) -> dict[str, Any]:
     """Relative torque errors of the twisted P2 cylinder against circular J and meshed J_h."""
-    import tests.test_body_rotation as rot
+    import validation.torsion as rot
 
     theta, sizes = 0.01, (0.5, 0.35) if quick else (0.5, 0.35, 0.25)
     exact = rot.SHEAR * math.pi * rot.R**4 / 2.0 * theta / rot.L

@@ -1,7 +1,7 @@
 """Run the default, bent-bar and twisted-cylinder scenes from the CLI, render, measure.
 
 Each scene runs as ``python -m wrinkles run scenes/<name>.toml --out BUILD/runs/<name>``
-(quick mode: the coarse settings of ``tests/test_scenes_extra.py``: the full load in 2
+(quick mode: the coarse settings of ``tests/test_wrinkles/test_scenes_bend_twist.py``: the full load in 2
 frames, one subdivision level). The last frame of the shell is rendered with
 ``wrinkles/render.py`` into ``figures/scene_<name>.png``; the physical numbers are those of the
 tests (``bent_bar_metrics``, ``twisted_cylinder_metrics``); sizes, iterations and wall
@@ -20,15 +20,15 @@ from common import figure_path, parse_args, write_json
 
 SCENES = ("default", "bent_bar", "twisted_cylinder")
 QUICK_DEFAULT = ("--frames", "2", "--set", "body.dt=0.5", "--set",
-                 "shell.subdivision.levels=1", "--set", "shell.render=false")
+                 "shell.subdivision.levels=1", "--set", "output.render=false")
 
 
 def run(name: str, out: Path, quick: bool) -> float:
     """Run one scene (rendering off: the paper renders the last frame); return wall time."""
-    from tests.test_scenes_extra import COARSE, run_scene
+    from validation.scene_runs import COARSE, run_scene
 
     extra = (COARSE if name != "default" else QUICK_DEFAULT) if quick else (
-        "--set", "shell.render=false")
+        "--set", "output.render=false")
     started = time.perf_counter()
     proc = run_scene(name, out, *extra, timeout=7200)
     if proc.returncode != 0:
@@ -81,7 +81,7 @@ def skin_numbers(scene: dict[str, Any]) -> dict[str, float]:
 
 def scene_entry(name: str, build: Path, quick: bool) -> dict[str, Any]:
     """Run, render and measure one scene."""
-    from tests.test_scenes_extra import bent_bar_metrics, twisted_cylinder_metrics
+    from validation.scene_runs import bent_bar_metrics, twisted_cylinder_metrics
 
     out = build / "runs" / name
     wall = run(name, out, quick)

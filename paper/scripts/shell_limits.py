@@ -1,6 +1,6 @@
 """Shell bending energy against the analytic cylinder and sphere values as meshes refine.
 
-Calls ``tests/test_shell_bending_limits.py``: the hinge sum ``sum_h w_h theta_h^2`` of a plate
+Calls :mod:`validation.bending_limits`: the hinge sum ``sum_h w_h theta_h^2`` of a plate
 rolled on a unit cylinder (per unit area; the limit density is 3 for the equilateral lattice
 and for the right grid bent along a lattice axis) and of an icosphere (over
 ``int (k1 + k2)^2 dA = 16 pi``; the limit is the triangle-shape prediction, 1.6 % above 1).
@@ -20,7 +20,8 @@ CYLINDERS = (("equilateral", 0.0), ("right", 0.0), ("right", 45.0))
 
 def cylinder_case(lattice: str, angle: float, sizes: tuple[int, ...]) -> dict[str, Any]:
     """Energy density ratios, Richardson limit, fitted order and error against closed form."""
-    import tests.test_shell_bending_limits as lim
+    import validation.bending_limits as lim
+    from meshes.shells import wrap_on_cylinder
 
     u = np.array([np.cos(np.radians(angle)), np.sin(np.radians(angle))])
     predicted = lim.closed_form_density(lattice, np.outer(u, u))
@@ -28,7 +29,7 @@ def cylinder_case(lattice: str, angle: float, sizes: tuple[int, ...]) -> dict[st
     for n in sizes:
         p, f = lim.plate(lattice, n)
         q = lim.rotate_to(p, u)
-        ratios.append(lim.hinge_sum(lim.wrap_on_cylinder(q, 1.0), f, q) / lim.flat_area(p, f))
+        ratios.append(lim.hinge_sum(wrap_on_cylinder(q, 1.0), f, q) / lim.flat_area(p, f))
     limit, order = lim.richardson(np.array(ratios), sizes)
     errors = [abs(r / predicted - 1.0) for r in ratios]
     return {"lattice": lattice, "angle_deg": angle, "n": list(sizes), "density": ratios,
@@ -39,12 +40,13 @@ def cylinder_case(lattice: str, angle: float, sizes: tuple[int, ...]) -> dict[st
 
 def sphere_case(levels: tuple[int, ...]) -> dict[str, Any]:
     """Icosphere hinge sum over 16 pi: Richardson limit against the triangle-shape value."""
-    import tests.test_shell_bending_limits as lim
+    import validation.bending_limits as lim
+    from meshes.shells import icosphere
 
     ratios = [lim.hinge_sum(p, f, p) / (16 * np.pi)
-              for p, f in (lim.icosphere(lv, radius=2.0) for lv in levels)]
+              for p, f in (icosphere(lv, radius=2.0) for lv in levels)]
     limit, order = lim.richardson(np.array(ratios), tuple(2**lv for lv in levels))
-    predicted = lim.isotropic_shape_factor(*lim.icosphere(levels[-1], radius=2.0))
+    predicted = lim.isotropic_shape_factor(*icosphere(levels[-1], radius=2.0))
     return {"levels": list(levels), "ratio": ratios, "limit": limit, "order": order,
             "predicted": predicted, "limit_abs_error": abs(limit - predicted),
             "excess_over_smooth": limit - 1.0}

@@ -1,6 +1,6 @@
 """Taylor remainders of the shell energy terms (edge and area membrane, hinge bending).
 
-Calls the helpers of ``tests/test_shell_core_taylor.py`` (random shells, flat-vector oracles,
+Calls the helpers of ``tests/test_models/shell/test_taylor.py`` (random shells, flat-vector oracles,
 remainders ``r1 = |W(x + e d) - W - e g.d|`` (slope 2 when the gradient is right) and
 ``r2 = |g(x + e d) - g - e H d|`` (slope 2 when the Hessian is right)) and writes the fitted
 slopes to ``data/taylor.json`` and the remainders to ``figures/taylor.png``.
@@ -17,7 +17,7 @@ from common import figure_path, fitted_slope, loglog_figure, parse_args, write_j
 
 def term_remainders(name: str) -> dict[str, Any]:
     """Remainders and fitted slopes of one term on the perturbed irregular plate."""
-    import tests.test_shell_core_taylor as tt
+    import validation.taylor as tt
     from meshes.shells import perturb
     from models.shell.bending import hinge_bending
     from models.shell.membrane import area_membrane, edge_membrane

@@ -10,9 +10,9 @@ The film thickness ``h`` is chosen per ratio so that the theoretical wavelength 
 case alike (the shell has ``lambda / edge`` edges per wavelength, the bilayer
 ``elements_per_wavelength`` columns) and only the physics (ratio, h) changes. Two
 measurements per ratio, both with
-:func:`wrinkles.measure.dominant_wavelength`:
+:func:`validation.measure.dominant_wavelength`:
 
-* volumetric: the plane-strain bilayer of :mod:`models.bilayer` (P2, film resolved by
+* volumetric: the plane-strain bilayer of :mod:`validation.bilayer` (P2, film resolved by
   ``film_layers`` rows, compressed to ``strain_factor`` eps_c with a random imperfection);
 * embedded shell: the scene ``scenes/wrinkle_skin.toml`` (a coarse P1 bar compressed 4 %
   along x, its surface subdivided into the shell: two levels with ``--quick``, three
@@ -34,29 +34,26 @@ Writes ``<build>/data/wavelength.json`` (with the ``meta`` entry of ``common.wri
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "paper" / "scripts"))
+import numpy as np
+from common import DEFAULT_BUILD, figure_path, write_json
 
-import numpy as np  # noqa: E402
-from common import DEFAULT_BUILD, figure_path, write_json  # noqa: E402
-
-from models.backend import MPI  # noqa: E402
-from models.bilayer import BilayerOptions, mode_spacing, run_bilayer  # noqa: E402
-from models.embedding.clusters import effective_modulus, wrinkle_wavelength  # noqa: E402
-from wrinkles.measure import (  # noqa: E402
+from models.backend import MPI
+from models.embedding.clusters import effective_modulus, wrinkle_wavelength
+from validation.bilayer import BilayerOptions, mode_spacing, run_bilayer
+from validation.measure import (
     SpectrumOptions,
     dominant_wavelength,
     normal_heights,
     shell_wavelength,
 )
-from wrinkles.runner import prepare, run_frames  # noqa: E402
-from wrinkles.scene import load_scene  # noqa: E402
+from wrinkles.runner import prepare, run_frames
+from wrinkles.scene import load_scene
+
+REPO = Path(__file__).resolve().parents[2]
 
 SCENE = REPO / "scenes" / "wrinkle_skin.toml"
 SUBSTRATE_E, SUBSTRATE_NU, FILM_NU = 5.0e4, 0.45, 0.3
@@ -75,7 +72,7 @@ BILAYER_QUICK: dict[str, Any] = {"periods": 10.0, "elements_per_wavelength": 12,
 BILAYER_FULL: dict[str, Any] = {"periods": 16.0, "elements_per_wavelength": 24, "film_layers": 3,
                                 "substrate_layers": 24, "depth": 1.5, "steps": 8,
                                 "strain_factor": 1.3}
-"""Bilayer sizes (:class:`models.bilayer.BilayerOptions` fields) of the quick and full runs."""
+"""Bilayer sizes (:class:`validation.bilayer.BilayerOptions` fields) of the quick and full runs."""
 SHELL_FULL = ["shell.subdivision.levels=3"]
 """Full runs: three subdivision levels (edges ~1.2 mm) for the 10 mm wavelength."""
 CLUSTER_FACTORS = (0.75, 1.5)

@@ -39,7 +39,7 @@ from typing import Literal, Protocol
 
 import numpy as np
 
-from models.errors import InputError, SolverError
+from meshes.errors import InputError, SolverError
 from solvers.decomposition.patch_energy import PatchEnergy
 from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver
 

@@ -2,7 +2,7 @@
 
 A square plate ``[0, L]^2`` held by the cluster penalty to a target compressed in x by the
 fraction ``compression`` (``y_x = L/2 + (1 - compression)(X_x - L/2)``), as in
-``tests/test_shell_solver_wrinkles.py``; the start is the target with a small seeded z
+``tests/test_solvers/test_shell_newton_wrinkles.py``; the start is the target with a small seeded z
 perturbation (``1e-4 L``) so the compressed plate can buckle out of plane.
 
 :func:`plate_frame` turns it into the realistic per-frame problem of a frame loop (MISSION.md
@@ -18,9 +18,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.interpolate import RegularGridInterpolator
 
+from meshes.errors import InputError
 from meshes.shells import grid_plate
 from models.embedding.clusters import ClusterOptions, build_clusters
-from models.errors import InputError
 from models.shell.energy import ShellParams
 from models.shell.rest import RestState
 from models.shell.topology import ShellTopology

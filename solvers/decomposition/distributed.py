@@ -27,8 +27,8 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from meshes.errors import InputError
 from models.backend import MPI, PETSc
-from models.errors import InputError
 from solvers.linear import (
     FactorReport,
     LinearSolverOptions,

@@ -26,8 +26,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from meshes.errors import InputError, SolverError
 from models.backend import MPI
-from models.errors import InputError, SolverError
 from solvers.decomposition.block import BlockOptions, BlockReport, BlockSolver, patch_colours
 from solvers.decomposition.patch_energy import PatchEnergy, ShellProblem
 from solvers.decomposition.patches import PatchSet, build_patches

@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import scipy.sparse as sp
 
-from models.errors import InputError
+from meshes.errors import InputError
 from models.shell.dofs import check_positions
 from models.shell.energy import ShellEnergy, ShellEval, ShellParams
 from models.shell.rest import RestState

@@ -39,8 +39,8 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from meshes.errors import InputError
 from models.backend import MPI, PETSc, begin_petsc_log
-from models.errors import InputError
 from models.shell.dofs import stencil_dofs
 from models.shell.energy import ShellEval
 from models.shell.penalty import PenaltyOperator, penalty_factor

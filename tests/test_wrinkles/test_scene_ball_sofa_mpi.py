@@ -1,0 +1,31 @@
+"""Ball on sofa on 2 MPI ranks agrees with the serial run (ball state, penetration, balance)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from support import FAST, SCENE, wrinkles
+
+
+@pytest.mark.mpi
+def test_two_ranks_agree_with_serial(tmp_path, mpiexec):
+    serial, parallel = tmp_path / "serial", tmp_path / "mpi"
+    args = ["run", str(SCENE), "--frames", "5", *FAST, "--set", "output.xdmf=false"]
+    proc = wrinkles(*args, "--out", str(serial))
+    assert proc.returncode == 0, proc.stderr
+    proc = mpiexec(["-m", "wrinkles", *args, "--out", str(parallel)], n=2, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    a, b = (json.loads((d / "summary.json").read_text())["frames"] for d in (serial, parallel))
+    assert json.loads((parallel / "summary.json").read_text())["run"]["ranks"] == 2
+    for fa, fb in zip(a, b, strict=True):
+        ba, bb = fa["details"]["balls"][0], fb["details"]["balls"][0]
+        for key in ("center", "velocity"):
+            np.testing.assert_allclose(bb[key], ba[key], rtol=0, atol=1e-10)  # measured 1e-16
+        np.testing.assert_allclose(bb["contact_force"], ba["contact_force"], rtol=1e-8,
+                                   atol=1e-8)
+        assert bb["penetration"] == pytest.approx(ba["penetration"], abs=1e-12)
+        m = fb["details"]["momentum"]
+        assert np.abs(np.add(m["ball_impulse"], m["body_impulse"])).max() < 1e-9
+    assert max(f["details"]["balls"][0]["penetration"] for f in b) > 0.005  # in contact

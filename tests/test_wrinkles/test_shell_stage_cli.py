@@ -1,0 +1,139 @@
+"""The wrinkle demo scene end to end from the CLI (short and coarse), its files, the render
+command, the ``[shell]`` table's validation, and 1 vs 2 ranks."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from support import DEFAULT_SCENE, REPO, read_shell_series, wrinkles
+
+from meshes.errors import InputError
+from wrinkles.scene import load_scene
+
+DEFAULT = DEFAULT_SCENE
+COARSE = ["--frames", "2", "--set", "shell.subdivision.levels=1", "--set", "output.render=false",
+          "--set", "body.dt=0.4"]
+"""2 frames of 4 % compression each, one subdivision level, no render at the end."""
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("demo")
+    proc = wrinkles("run", str(DEFAULT), "--out", str(out), *COARSE)
+    assert proc.returncode == 0, proc.stderr
+    return out
+
+
+def test_demo_writes_consistent_body_and_shell_series(demo):
+    body_pts, tets, body_steps = read_shell_series(demo / "body.xdmf")
+    pts, tris, steps = read_shell_series(demo / "shell.xdmf")
+    assert tets.shape[1] == 4 and tris.shape[1] == 3
+    assert [t for t, _ in steps] == pytest.approx([0.0, 0.4, 0.8])
+    assert [t for t, _ in body_steps] == pytest.approx([0.0, 0.4, 0.8])
+    for _, data in steps:
+        assert data["displacement"].shape == pts.shape
+        assert data["bending_energy_density"].shape == (pts.shape[0],)
+        assert data["cluster_id"].shape == (pts.shape[0],)
+        assert all(np.all(np.isfinite(v)) for v in data.values())
+    for _, data in body_steps:
+        assert data["displacement"].shape == body_pts.shape
+    # the moving end is pinned at -0.02 m/unit * 0.8 = -16 mm in x; the shell moved with the
+    # body up to its wrinkles/sliding in the null space of H (measured -17.1 mm)
+    assert body_steps[-1][1]["displacement"][:, 0].min() == pytest.approx(-0.016, abs=1e-12)
+    assert steps[-1][1]["displacement"][:, 0].min() == pytest.approx(-0.016, rel=0.1)
+    summary = json.loads((demo / "summary.json").read_text())
+    frames = summary["frames"]
+    assert len(frames) == 2 and summary["run"]["status"] == "completed"
+    assert summary["run"]["shell"]["vertices"] == pts.shape[0]
+    assert set(frames[0]["stage_times"]) == {"body", "shell"}
+    amplitude = [f["details"]["wrinkle_amplitude_rel"] for f in frames]
+    print("wrinkle amplitude / edge", amplitude)
+    assert all(f["details"]["shell_converged"] for f in frames)
+    assert amplitude[-1] > 0.1
+
+
+def test_render_writes_png_and_gif(demo):
+    proc = wrinkles("render", str(demo), "--width", "320", "--height", "240")
+    assert proc.returncode == 0, proc.stderr
+    from PIL import Image
+
+    png, gif = demo / "shell.png", demo / "shell.gif"
+    with Image.open(png) as image:
+        assert image.size == (320, 240)
+        pixels = np.asarray(image.convert("RGB"), dtype=float)
+    assert pixels.std() > 10.0  # not a blank image
+    with Image.open(gif) as anim:
+        assert anim.n_frames == 3
+    assert len(list((demo / "frames").glob("shell_*.png"))) == 3
+
+
+def test_render_without_series_is_an_input_error(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "wrinkles.render", str(tmp_path)],
+                          capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert proc.returncode == 1
+    assert "no shell series to render" in proc.stderr
+
+
+@pytest.mark.parametrize(("override", "message"), [
+    ("shell.skin.thicknes=1e-3", "unknown key 'shell.skin.thicknes'"),
+    ("shell.coupling.mode='both'", "shell.coupling.mode"),
+    ("shell.imperfection=-1.0", "shell.imperfection"),
+])
+def test_shell_table_is_validated(override, message):
+    with pytest.raises(InputError, match=message.replace(".", r"\.")):
+        load_scene(DEFAULT, [override])
+
+
+@pytest.mark.mpi
+def test_two_ranks_give_the_serial_shell(demo, mpiexec, tmp_path):
+    """The shell is solved on rank 0 from B u gathered over the ranks: 2 ranks reproduce the
+    serial run to the body/shell solver tolerances."""
+    proc = mpiexec(["-m", "wrinkles", "run", str(DEFAULT), "--out", str(tmp_path), *COARSE],
+                   timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    _, _, serial = read_shell_series(demo / "shell.xdmf")
+    _, _, parallel = read_shell_series(tmp_path / "shell.xdmf")
+    diff = np.abs(serial[-1][1]["displacement"] - parallel[-1][1]["displacement"]).max()
+    print("max shell displacement difference 1 vs 2 ranks", diff)
+    assert diff < 1e-6
+
+
+def test_resume_with_a_shell_continues_the_run(demo, tmp_path):
+    """The checkpoint holds the shell state: --resume of the 2-frame demo with --frames 3
+    continues at frame 3 and appends one step to both series (a copy of the demo output)."""
+    out = tmp_path / "demo"
+    shutil.copytree(demo, out)
+    extended = ["--frames", "3", *COARSE[2:]]
+    proc = wrinkles("run", str(DEFAULT), "--out", str(out), "--resume", *extended)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines()[0].split()[1] == "3/3"
+    for name in ("body.xdmf", "shell.xdmf"):
+        _, _, steps = read_shell_series(out / name)
+        assert [t for t, _ in steps] == pytest.approx([0.0, 0.4, 0.8, 1.2])
+    frames = json.loads((out / "summary.json").read_text())["frames"]
+    assert [f["frame"] for f in frames] == [1, 2, 3]
+    assert frames[-1]["details"]["shell_converged"]
+
+
+def test_multigrid_linear_method_runs_a_scene_to_the_direct_minimiser(tmp_path):
+    """``shell.newton.linear_method = "multigrid"`` (PCMG on the scene's own subdivision
+    hierarchy, Gauss-Newton Hessian) converges each frame to the minimiser the direct solve
+    finds with the same Hessian mode, to the solver tolerance."""
+    gn = ["--set", "shell.solver.hessian=gauss_newton", "--set", "shell.imperfection=0.0"]
+    energies = {}
+    for method in ("direct", "multigrid"):
+        out = tmp_path / method
+        proc = wrinkles("run", str(DEFAULT), "--out", str(out), *COARSE, *gn,
+                        "--set", f"shell.solver.method={method}")
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        frames = json.loads((out / "summary.json").read_text())["frames"]
+        assert all(f["details"]["shell_converged"] for f in frames)
+        energies[method] = np.array([f["details"]["shell_energy"] for f in frames])
+    print("shell energies direct", energies["direct"], "multigrid", energies["multigrid"])
+    np.testing.assert_allclose(energies["multigrid"], energies["direct"], rtol=1e-6)

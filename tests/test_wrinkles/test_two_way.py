@@ -1,0 +1,248 @@
+"""Shell warm starts the flip barrier refuses, and the two-way implicit run they broke.
+
+The warm start ``x_prev + (y - y_prev)`` carries the shell's offset from its target onto the new
+target, while the flip barrier measures each face against the normals of the new target. When
+the target rotates under a steep fold the carried face is turned over (s <= 0, W = +inf) and
+the shell Newton refused to start: ``scenes/default.toml`` with two-way implicit coupling
+stopped with "shell energy is not finite (W=inf)" (frame 2 at full size, frame 1 with the
+coarse settings below). :func:`wrinkles.shell_stage.admissible_start` pulls the vertices of the
+turned-over faces back towards the target and leaves every other vertex bitwise alone.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from scipy.spatial.transform import Rotation
+from support import REPO, wrinkles
+
+from meshes.errors import SolverError
+from meshes.shells import grid_plate
+from models.shell.barrier import signed_area_ratio
+from models.shell.energy import ShellEnergy, ShellParams
+from models.shell.rest import RestState
+from models.shell.topology import ShellTopology
+from solvers.shell_newton import ShellNewtonSolver
+from wrinkles.checkpoint import CHECKPOINT_NAME, read_state
+from wrinkles.scene import load_scene, scene_dict
+from wrinkles.shell_stage import admissible_start
+
+COARSE = ("--frames", "2", "--set", "body.dt=0.5", "--set", "shell.subdivision.levels=1",
+          "--set", "output.render=false")
+"""The default scene's 10 % compression in 2 frames on one subdivision level (654 vertices)."""
+TWO_WAY_SCENE = REPO / "scenes" / "two_way_bar.toml"
+"""scenes/default.toml with two-way implicit coupling (max_iterations 100)."""
+COUPLING_IT = 100
+CAP = 8
+"""Coupling iterations of the "capped" run: far from converged (the frames need 38-61)."""
+"""Coupling iterations allowed on the coarse two-way run (Anderson needs 36 and ~58, measured)."""
+
+
+def plate_energy() -> tuple[np.ndarray, ShellEnergy]:
+    """A 6 x 6 unit plate in z = 0 held vertex by vertex (H = I) to its target."""
+    p, faces = grid_plate(6, 6)
+    top = ShellTopology.from_faces(faces, p.shape[0])
+    energy = ShellEnergy(top, RestState.from_positions(top, p), ShellParams(k_P=1e2),
+                         sp.identity(p.shape[0], format="csr"))
+    return p, energy
+
+
+def min_ratio(energy: ShellEnergy, x: np.ndarray) -> float:
+    """Smallest signed area ratio s of the barrier faces against the current target."""
+    faces = energy.topology.faces
+    return float(signed_area_ratio(x, faces, energy.rest.rest_areas,
+                                   energy.reference_normals).min())
+
+
+def rotated_fold() -> tuple[np.ndarray, np.ndarray, ShellEnergy, int]:
+    """Plate with a fold (vertex 24 = (0.5, 0.5) lifted by 0.5), target rotated 30 deg about x.
+
+    Returns ``(x0, y, energy, vertex)``: the carried warm start ``x_prev + (y - y_prev)``, the
+    new target (already set on the energy) and the lifted vertex.
+    """
+    p, energy = plate_energy()
+    v = 24
+    x_prev = p.copy()
+    x_prev[v, 2] += 0.5
+    assert min_ratio(energy, x_prev) == pytest.approx(1.0)  # admissible for the old target
+    c = p.mean(axis=0)
+    y = (p - c) @ Rotation.from_euler("x", 30, degrees=True).as_matrix().T + c
+    energy.set_target(y)
+    return x_prev + (y - p), y, energy, v
+
+
+def test_rotated_target_turns_the_carried_fold_over() -> None:
+    """The measured failure: the carried start has s = -0.5 on the fold's two faces
+    (W = inf) and the shell Newton refuses it."""
+    x0, _, energy, _ = rotated_fold()
+    assert min_ratio(energy, x0) == pytest.approx(-0.5, abs=1e-12)
+    assert energy.value(x0) == np.inf
+    with pytest.raises(SolverError, match="not finite"):
+        ShellNewtonSolver(energy).minimize(x0)  # type: ignore[arg-type]
+
+
+def test_admissible_start_moves_only_the_fold_and_newton_converges() -> None:
+    """The repair halves the lifted vertex's offset until its faces turn back (s > 0): only
+    that vertex moves, along the segment to the target, every other one is bitwise kept,
+    and Newton from the repaired start converges with every face admissible."""
+    x0, y, energy, v = rotated_fold()
+    x, moved = admissible_start(energy, x0, y)
+    assert moved == 1
+    assert np.array_equal(np.delete(x, v, axis=0), np.delete(x0, v, axis=0))
+    t = np.linalg.norm(x[v] - y[v]) / np.linalg.norm(x0[v] - y[v])
+    assert np.allclose(x[v] - y[v], t * (x0[v] - y[v]), rtol=0, atol=1e-15)
+    assert np.log2(t) == pytest.approx(round(np.log2(t)))  # a power of 1/2
+    assert 0.0 < t < 1.0
+    assert min_ratio(energy, x) > 0.0
+    assert np.isfinite(energy.value(x))
+    xs, report = ShellNewtonSolver(energy).minimize(x)  # type: ignore[arg-type]
+    assert report.converged
+    assert min_ratio(energy, xs) > 0.0
+    print(f"offset kept t = {t}, min s after repair {min_ratio(energy, x):.4f}, "
+          f"Newton {report.iterations} iterations, W = {report.energy:.6e}")
+
+
+def test_admissible_start_keeps_an_admissible_start() -> None:
+    """An admissible start is handed back as the same array (one-way runs unchanged)."""
+    p, energy = plate_energy()
+    x0 = p + 1e-3 * np.random.default_rng(0).standard_normal(p.shape)
+    x, moved = admissible_start(energy, x0, p)
+    assert x is x0 and moved == 0
+
+
+def test_admissible_start_refuses_a_degenerate_target() -> None:
+    """A target face of zero area cannot anchor a repair: SolverError naming the face."""
+    p, energy = plate_energy()
+    y = p.copy()
+    y[24] = y[25]  # faces around the edge 24-25 collapse onto a segment
+    energy.set_target(y)
+    with pytest.raises(SolverError, match="turned over .* even at the target"):
+        admissible_start(energy, y, y)
+
+
+@pytest.fixture(scope="module")
+def default_runs(tmp_path_factory) -> dict[str, Path]:
+    """scenes/default.toml on the coarse settings, one-way and two-way implicit."""
+    outs = {}
+    default = REPO / "scenes" / "default.toml"
+    # a cap of 8 (changes 7e-2 / 3e-2): with 2, 3 and (on the AMD machine of 2026-11-26) 4
+    # the unconverged body hands the shell a target on which a hinge folds flat (dihedral
+    # angle pi, where the bending energy jumps) and the shell solve stops with a named error;
+    # caps 5 to 20 all ran there (changes 1e-1 .. 1e-4), 8 keeps a margin on both sides
+    capped = ("--set", f"shell.solver.options.coupling.max_iterations={CAP}")
+    for mode, scene, extra in (("one_way", default, ()), ("two_way", TWO_WAY_SCENE, ()),
+                               ("capped", TWO_WAY_SCENE, capped)):
+        out = tmp_path_factory.mktemp(mode) / "out"
+        proc = wrinkles("run", str(scene), "--out", str(out), *COARSE, *extra)
+        assert proc.returncode == 0, proc.stderr  # two-way: exit 2, W = inf before the repair
+        lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("frame")]
+        assert len(lines) == 2
+        (out / "progress.txt").write_text("\n".join(lines))
+        outs[mode] = out
+    return outs
+
+
+def frames(out: Path) -> list[dict]:
+    return json.loads((out / "summary.json").read_text())["frames"]
+
+
+def test_default_scene_two_way_implicit_runs(default_runs):
+    """Both frames complete with a converged shell and finite energies; the two-way warm
+    starts needed repairs (measured 3 and 13 vertices), the one-way ones none."""
+    one, two = frames(default_runs["one_way"]), frames(default_runs["two_way"])
+    assert len(one) == len(two) == 2
+    for rec in one + two:
+        d = rec["details"]
+        assert d["shell_converged"]
+        assert np.isfinite(d["shell_energy"]) and np.isfinite(d["shell_terms"]["flip_barrier"])
+        assert np.isfinite(rec["energy"]) and rec["min_det_f"] > 0.75
+    assert [r["details"]["shell_start_repaired"] for r in one] == [0, 0]
+    assert sum(r["details"]["shell_start_repaired"] for r in two) >= 1
+    for r in two:
+        print("two-way frame", r["frame"], {k: r["details"][k] for k in
+              ("coupling_iterations", "coupling_change", "shell_energy",
+               "shell_start_repaired")})
+
+
+def test_default_scene_two_way_implicit_converges(default_runs):
+    """The implicit coupling reaches rtol = 1e-6 on both frames (Anderson acceleration of the
+    body load ``c = M (x - X_T)``). Measured: 36 and ~58 iterations. Before (Aitken on the
+    shell iterate, 10 iterations) it stopped at changes 0.040 and 0.0034, and with 40
+    iterations it stalled at 1e-4..5e-4: the plain alternation contracts by only ~0.90 (frame
+    1) and ~0.977 (frame 2) per iteration, the skin and the soft body being strongly coupled
+    through the penalty."""
+    for r in frames(default_runs["two_way"]):
+        d = r["details"]
+        assert d["coupling_change"] <= 1e-6
+        assert d["coupling_iterations"] < COUPLING_IT
+        assert d["shell_converged"]
+
+
+def test_default_scene_two_way_differs_from_one_way(default_runs):
+    """The skin's feedback stiffens the bar: body elastic energy 1.89x / 1.64x the one-way
+    value (measured at the converged coupling, frames 1 / 2), and the body surface moves by up
+    to 29 % of the 2 cm end displacement away from its one-way position (measured 5.83 mm)."""
+    one, two = frames(default_runs["one_way"]), frames(default_runs["two_way"])
+    ratios = [b["details"]["elastic"] / a["details"]["elastic"] for a, b in zip(one, two,
+                                                                                strict=True)]
+    print("elastic energy two-way / one-way", ratios)
+    assert all(1.5 < r < 2.3 for r in ratios)
+    y = {m: read_state(out / CHECKPOINT_NAME).arrays["shell"]["target"]
+         for m, out in default_runs.items()}
+    moved = float(np.abs(y["two_way"] - y["one_way"]).max())
+    print("max |y_two_way - y_one_way| =", moved)
+    assert 0.15 * 0.02 < moved < 0.35 * 0.02
+
+
+def test_unconverged_coupling_is_flagged(default_runs):
+    """A frame stopped by ``max_iterations`` above ``rtol`` is kept but flagged, in the
+    summary (``coupling_converged``) and on its progress line; converged frames say only the
+    iteration count, one-way frames nothing."""
+    for mode, converged in (("two_way", True), ("capped", False)):
+        recs = frames(default_runs[mode])
+        lines = (default_runs[mode] / "progress.txt").read_text().splitlines()
+        for rec, line in zip(recs, lines, strict=True):
+            d = rec["details"]
+            print(mode, line)
+            assert d["coupling_converged"] is converged
+            assert (d["coupling_change"] <= 1e-6) is converged
+            assert f"coupling={d['coupling_iterations']}" in line
+            assert ("NOT converged" in line) is not converged
+        if not converged:
+            assert [r["details"]["coupling_iterations"] for r in recs] == [CAP, CAP]
+    assert "coupling" not in (default_runs["one_way"] / "progress.txt").read_text()
+
+
+def test_two_way_scene_is_the_default_scene_coupled():
+    """scenes/two_way_bar.toml differs from scenes/default.toml only in its title and its
+    [shell.coupling] table (resolved scenes compared key by key)."""
+    one = scene_dict(load_scene(REPO / "scenes" / "default.toml"))
+    two = scene_dict(load_scene(TWO_WAY_SCENE))
+    coupling = (two["shell"].pop("coupling"), one["shell"].pop("coupling"))
+    assert coupling[0] == {"mode": "two_way"}
+    assert coupling[1]["mode"] == "one_way"
+    assert {k for k in one if one[k] != two[k]} == {"title"}
+
+
+@pytest.mark.mpi
+def test_two_way_scene_on_two_ranks_matches_serial(default_runs, mpiexec, tmp_path):
+    """The coarse two-way run on 2 ranks: the same coupling iterations and body energies as
+    the serial run to the coupling tolerance (measured before the presets' x5 / 2 shift
+    schedule: 36 / 60 iterations on both, energies equal to 2.0e-13 and 2.9e-9 relative,
+    frames 1 / 2; serial with it: 38 / 61)."""
+    out = tmp_path / "out"
+    proc = mpiexec(["-m", "wrinkles", "run", str(TWO_WAY_SCENE), "--out", str(out), *COARSE],
+                   n=2, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    for serial, parallel in zip(frames(default_runs["two_way"]), frames(out), strict=True):
+        print(serial["frame"], serial["energy"], parallel["energy"])
+        assert parallel["details"]["coupling_converged"]
+        assert parallel["details"]["coupling_iterations"] == \
+            serial["details"]["coupling_iterations"]
+        assert parallel["energy"] == pytest.approx(serial["energy"], rel=1e-7)
+        assert parallel["details"]["shell_energy"] == pytest.approx(
+            serial["details"]["shell_energy"], rel=1e-7)

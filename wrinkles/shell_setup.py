@@ -1,0 +1,403 @@
+"""Set-up of the embedded shell (Algorithm 1 of the draft; Remillard & Kry 2013).
+
+Once per run: the outward boundary surface of the body mesh is subdivided ``L`` levels into the
+shell T (rest shape X_T); the embedding matrix B maps the body's displacement space onto T's
+vertices; clusters give the constraint matrix H; the shell energy
+
+    W(x) = k_L W_L + k_A W_A + k_B W_B + k_P ||H (x - y)||^2
+
+and its Newton solver are built. The stiffnesses come either from ``[shell.energy]`` (``k_*``
+directly) or from the physical skin ``[shell.skin]`` (E, nu, thickness ->
+:mod:`models.shell.stiffness`; bending calibrated "cylinder", ``k_B = D / 6``, since wrinkles
+are cylindrical bends). With a skin and no explicit cluster count or spacing, the clusters are
+sized from the skin's wrinkle wavelength on the body material,
+``lambda = 2 pi h (Ebar_f / (3 Ebar_s))^(1/3)`` (sigma = lambda/pi, r = lambda/2).
+The per-frame solve is :mod:`wrinkles.shell_stage`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from meshes.errors import InputError
+from models.coupling import PenaltyCoupling
+from models.embedding.clusters import ClusterOptions, Clusters, build_clusters
+from models.embedding.embedding import (
+    Embedding,
+    EmbeddingOptions,
+    build_embedding,
+    mesh_surface,
+)
+from models.embedding.subdivision import SubdivisionOptions, subdivide
+from models.materials import Material
+from models.shell.energy import ShellEnergy, ShellParams
+from models.shell.rest import RestState, vertex_normals
+from models.shell.stiffness import ShellMaterial, shell_stiffness
+from models.shell.topology import ShellTopology
+from solvers.body import Body
+from solvers.coupling import CouplingOptions
+from solvers.multigrid import ShellHierarchy
+from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver
+from wrinkles.config import expert, flatten, unflatten
+
+
+@dataclass(frozen=True)
+class SkinOptions:
+    """Physical skin replacing ``k_L``, ``k_A``, ``k_B`` of ``[shell.energy]``.
+
+    Attributes:
+        E: Young's modulus of the skin E_f [Pa].
+        nu: Poisson ratio of the skin.
+        thickness: skin thickness h [m].
+        membrane: membrane mapping of :func:`models.shell.stiffness.membrane_stiffness`
+            ("equibiaxial" or "isotropic", the latter needs nu >= 1/3).
+        bending: bending calibration: "cylinder" (k_B = D/6, for wrinkles) or "sphere"
+            (k_B = D/2), D = E h^3 / (12 (1 - nu^2)).
+
+    """
+
+    E: float = 1.0e7
+    nu: float = 0.3
+    thickness: float = 1.0e-3
+    membrane: Literal["equibiaxial", "isotropic"] = "equibiaxial"
+    bending: Literal["sphere", "cylinder"] = "cylinder"
+
+    def __post_init__(self) -> None:
+        for name in ("E", "thickness"):
+            if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0.0):
+                raise InputError(f"shell.skin.{name}: must be > 0, got {getattr(self, name)}")
+        if not -1.0 < self.nu < 0.5:
+            raise InputError(f"shell.skin.nu: must be in (-1, 0.5), got {self.nu}")
+
+
+def _positive(table: object, names: tuple[str, ...], prefix: str) -> None:
+    """Refuse a given (not None) value of ``names`` that is not finite and > 0."""
+    for name in names:
+        value = getattr(table, name)
+        if value is not None and not (np.isfinite(value) and value > 0.0):
+            raise InputError(f"{prefix}.{name}: must be > 0, got {value}")
+
+
+@dataclass(frozen=True)
+class SubdivisionKeys:
+    """``[shell.subdivision]``: how the body's surface is refined into the shell.
+
+    Attributes:
+        levels: subdivision levels L (each x4 triangles), >= 0.
+        scheme: "linear" (1-to-4 midpoint) or "loop".
+
+    """
+
+    levels: int = 1
+    scheme: Literal["linear", "loop"] = "linear"
+
+    def __post_init__(self) -> None:
+        if self.levels < 0:
+            raise InputError(f"subdivision.levels: must be >= 0, got {self.levels}")
+
+
+@dataclass(frozen=True)
+class ClusterKeys:
+    """``[shell.clusters]``: the Gaussian clusters of the penalty (Remillard & Kry 2013).
+
+    With none of the keys and a ``[shell.skin]`` the clusters are sized from the skin's wrinkle
+    wavelength on the body (:func:`cluster_options`).
+
+    Attributes:
+        count: number of clusters c.
+        spacing: centre spacing r [m] (alternative to ``count``).
+        sigma: Gaussian width [m] (default: from the spacing).
+
+    """
+
+    count: int | None = None
+    spacing: float | None = None
+    sigma: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.count is not None and self.count < 1:
+            raise InputError(f"clusters.count: must be >= 1, got {self.count}")
+        _positive(self, ("spacing", "sigma"), "clusters")
+
+
+@dataclass(frozen=True)
+class EnergyKeys:
+    """``[shell.energy]``: the stiffnesses of ``W = k_L W_L + k_A W_A + k_B W_B + k_P W_P``.
+
+    ``k_L``, ``k_A``, ``k_B`` come from ``[shell.skin]`` when the scene has one (then they may not
+    be given here); ``None`` keeps :class:`models.shell.energy.ShellParams`' default.
+
+    Attributes:
+        k_L: edge membrane stiffness [N/m x m].
+        k_A: area membrane stiffness [N/m].
+        k_B: hinge bending stiffness [N m].
+        k_P: cluster penalty stiffness [N/m].
+
+    """
+
+    k_L: float | None = None
+    k_A: float | None = None
+    k_B: float | None = None
+    k_P: float | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("k_L", "k_A", "k_B", "k_P"):
+            value = getattr(self, name)
+            if value is not None and not (np.isfinite(value) and value >= 0.0):
+                raise InputError(f"energy.{name}: must be finite and >= 0, got {value}")
+
+
+@dataclass(frozen=True)
+class CouplingKeys:
+    """``[shell.coupling]``: whether the shell acts back on the body.
+
+    Attributes:
+        mode: "one_way" (the shell follows the body) or "two_way".
+
+    """
+
+    mode: Literal["one_way", "two_way"] = "one_way"
+
+
+SOLVER_METHODS: tuple[str, ...] = ("direct", "multigrid")
+
+
+@dataclass(frozen=True)
+class SolverKeys:
+    """``[shell.solver]``: how the shell is solved: a few named choices and an expert mapping.
+
+    Attributes:
+        method: linear solves of the Newton steps: "direct" (sparse LDL^T) or "multigrid" (CG
+            with geometric multigrid on the subdivision hierarchy).
+        hessian: "exact", "gauss_newton" or "projected" (:mod:`models.shell.assembly`).
+        rtol: relative gradient tolerance of each frame's Newton solve.
+        max_iterations: Newton iterations per frame.
+        threads: threads of the element kernels and multigrid products (1 under MPI).
+        options: expert mapping of dotted paths into :class:`ShellInternals` (``"newton.shift.
+            growth" = 5``, ``"energy.k_F" = 0``, ``"coupling.scheme" = "explicit"``), checked
+            like any key; ``wrinkles check`` prints the resolved values.
+
+    """
+
+    method: Literal["direct", "multigrid"] = "direct"
+    hessian: Literal["exact", "gauss_newton", "projected"] = "exact"
+    rtol: float = 1e-8
+    max_iterations: int = 200
+    threads: int = 1
+    options: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "options", flatten(unflatten(self.options, "solver.options")))
+        _positive(self, ("rtol",), "solver")
+        for name in ("max_iterations", "threads"):
+            if getattr(self, name) < 1:
+                raise InputError(f"solver.{name}: must be >= 1, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class ShellInternals:
+    """Every option of the shell's set-up and solvers.
+
+    The scene's named keys fill some of it, ``[shell.solver.options]`` the rest.
+
+    Attributes:
+        newton: the Newton solver (linear solvers, shifts, multigrid, modified Newton).
+        energy: stiffnesses, flip barrier, Hessian mode and penalty Hessian form, threads.
+        embedding: point location tolerances of B.
+        clusters: placement method and sizing of the clusters.
+        subdivision: levels, scheme and Loop weights.
+        coupling: the two-way iteration (scheme, tolerance, cap, Anderson memory, relaxation).
+
+    """
+
+    newton: ShellNewtonOptions = field(default_factory=ShellNewtonOptions)
+    energy: ShellParams = field(default_factory=ShellParams)
+    embedding: EmbeddingOptions = field(default_factory=EmbeddingOptions)
+    clusters: ClusterOptions = field(default_factory=ClusterOptions)
+    subdivision: SubdivisionOptions = field(default_factory=SubdivisionOptions)
+    coupling: CouplingOptions = field(default_factory=CouplingOptions)
+
+
+SCENE_DEFAULTS: dict[str, Any] = {"energy.penalty_hessian": "low_rank"}
+"""Internal values a scene starts from where they differ from the dataclass defaults (an
+expert key may change them): the low-rank penalty, since ``H^T H`` fills in at large sizes."""
+
+
+@dataclass(frozen=True)
+class ShellOptions:
+    """The ``[shell]`` table of a scene: the embedded shell and its coupling.
+
+    Physics (what the shell is): ``subdivision``, ``clusters``, ``energy``, ``skin``,
+    ``coupling``, ``imperfection``; solver (how it is solved): ``solver``. The resolved
+    internal options are :attr:`internals` (built when the table is read, so a bad expert key
+    is refused then).
+
+    Attributes:
+        subdivision: levels and scheme of the surface subdivision.
+        clusters: cluster count, spacing or width (default: physical sizing from the skin).
+        energy: stiffnesses k_L, k_A, k_B, k_P.
+        skin: physical skin; when given it sets k_L, k_A, k_B and the physical cluster sizing.
+        coupling: one-way (default) or two-way coupling with the body.
+        solver: the named solver choices and the expert mapping.
+        imperfection: amplitude of the deterministic warm-start perturbation along the rest
+            normals, as a fraction of the mean rest edge length (0 = none).
+
+    """
+
+    subdivision: SubdivisionKeys = field(default_factory=SubdivisionKeys)
+    clusters: ClusterKeys = field(default_factory=ClusterKeys)
+    energy: EnergyKeys = field(default_factory=EnergyKeys)
+    skin: SkinOptions | None = None
+    coupling: CouplingKeys = field(default_factory=CouplingKeys)
+    solver: SolverKeys = field(default_factory=SolverKeys)
+    imperfection: float = 1.0e-3
+    internals: ShellInternals = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.imperfection) and self.imperfection >= 0.0):
+            raise InputError(f"shell.imperfection: must be >= 0, got {self.imperfection}")
+        if self.skin is not None:
+            for name in ("k_L", "k_A", "k_B"):
+                if getattr(self.energy, name) is not None:
+                    raise InputError(f"shell.energy.{name}: [shell.skin] sets it; give one of "
+                                     f"the two")
+        object.__setattr__(self, "internals", expert(
+            ShellInternals, self.solver.options, "shell.solver.options",
+            named=self.named_keys(), defaults=SCENE_DEFAULTS))
+
+    def named_keys(self) -> dict[str, Any]:
+        """Return the internal values the named keys set (dotted paths of ShellInternals)."""
+        solver = self.solver
+        keys: dict[str, Any] = {
+            "subdivision.levels": self.subdivision.levels,
+            "subdivision.scheme": self.subdivision.scheme,
+            "coupling.mode": self.coupling.mode,
+            "energy.hessian_mode": solver.hessian, "energy.threads": solver.threads,
+            "newton.rtol": solver.rtol, "newton.max_iterations": solver.max_iterations,
+            "newton.linear_method": solver.method, "newton.multigrid.threads": solver.threads}
+        for table, prefix in ((self.clusters, "clusters"), (self.energy, "energy")):
+            for f in dataclasses.fields(table):
+                value = getattr(table, f.name)
+                if value is not None:
+                    keys[f"{prefix}.{f.name}"] = value
+        return keys
+
+
+def mean_edge_length(x: np.ndarray, topology: ShellTopology) -> float:
+    """Mean length of the shell's edges [m]."""
+    e = topology.edges
+    return float(np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1).mean())
+
+
+def shell_params(options: ShellOptions, edge_length: float) -> ShellParams:
+    """``ShellParams`` of the scene: ``[shell.energy]``, or its k_P with the skin's k_L/k_A/k_B."""
+    skin, params = options.skin, options.internals.energy
+    if skin is None:
+        return params
+    mat = ShellMaterial(E=skin.E, nu=skin.nu, thickness=skin.thickness, edge_length=edge_length)
+    k = shell_stiffness(mat, skin.membrane, skin.bending)
+    return dataclasses.replace(params, k_L=k["k_L"], k_A=k["k_A"], k_B=k["k_B"])
+
+
+def cluster_options(options: ShellOptions, material: Material) -> ClusterOptions:
+    """Cluster options, sized from the skin and the body material when asked to be physical.
+
+    Physical sizing applies when a skin is given and the clusters have no count, spacing or
+    skin thickness of their own.
+    """
+    c, skin = options.internals.clusters, options.skin
+    if skin is None or c.count is not None or c.spacing is not None or c.skin_thickness:
+        return c
+    return dataclasses.replace(c, skin_thickness=skin.thickness, skin_E=skin.E, skin_nu=skin.nu,
+                               body_E=material.E, body_nu=material.nu)
+
+
+@dataclass
+class Shell:
+    """The embedded shell of a run and its state.
+
+    Attributes:
+        options: the ``[shell]`` options.
+        topology: shell connectivity.
+        rest: ``(n, 3)`` rest positions X_T (= B X_q).
+        embedding: B for the body's displacement space.
+        clusters: clusters, H and partition.
+        energy: the shell energy (its target is the current y).
+        solver: the Newton solver (reused over frames).
+        x: ``(n, 3)`` current shell positions.
+        y: ``(n, 3)`` current target.
+        normals: ``(n, 3)`` rest vertex normals (imperfection direction).
+        edge_length: mean rest edge length [m].
+        gradient_scale: reference gradient norm of the relative tolerance (0 = not yet set).
+        facts: set-up numbers for the summary.
+        force: ``(n, 3)`` relaxed penalty force on the target fed back to the body (two-way
+            coupling; zero otherwise).
+        coupling: constant part of the implicit coupling term (built on first use,
+            :func:`penalty_coupling`).
+        start_repaired: vertices the last warm start pulled towards the target because a
+            face was turned over against the target's normals (:func:`admissible_start`).
+
+    """
+
+    options: ShellOptions
+    topology: ShellTopology
+    rest: np.ndarray
+    embedding: Embedding
+    clusters: Clusters
+    energy: ShellEnergy
+    solver: ShellNewtonSolver
+    x: np.ndarray
+    y: np.ndarray
+    normals: np.ndarray
+    edge_length: float
+    gradient_scale: float = 0.0
+    facts: dict[str, Any] = field(default_factory=dict)
+    force: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    coupling: PenaltyCoupling | None = None
+    start_repaired: int = 0
+
+    def __post_init__(self) -> None:
+        if self.force.shape != self.rest.shape:
+            self.force = np.zeros_like(self.rest)
+
+    @property
+    def params(self) -> ShellParams:
+        """The stiffnesses in use."""
+        return self.energy.params
+
+
+def build_shell(body: Body, options: ShellOptions, material: Material) -> Shell:
+    """Surface -> subdivision -> rest shell, B, clusters and H, energy and solver (collective).
+
+    Every rank builds the same shell (the surface is gathered identically on all ranks).
+    """
+    t0 = time.perf_counter()
+    surface = mesh_surface(body.mesh)
+    sub = subdivide(surface.vertices, surface.faces, options.internals.subdivision)
+    topology = ShellTopology.from_faces(sub.faces, sub.vertices.shape[0])
+    emb = build_embedding(body.V, sub.vertices, options.internals.embedding)
+    rest = np.ascontiguousarray(sub.vertices)
+    a = mean_edge_length(rest, topology)
+    clusters = build_clusters(rest, sub.faces, cluster_options(options, material))
+    params = shell_params(options, a)
+    energy = ShellEnergy(topology, RestState.from_positions(topology, rest), params, clusters.H)
+    solver = ShellNewtonSolver(energy, options.internals.newton,  # type: ignore[arg-type]
+                               hierarchy=ShellHierarchy(sub))
+    facts = {"vertices": int(rest.shape[0]), "faces": int(sub.faces.shape[0]),
+             "coarse_surface_vertices": int(surface.vertices.shape[0]),
+             "mean_edge_length": a, "k_L": params.k_L, "k_A": params.k_A,
+             "k_B": params.k_B, "k_P": params.k_P,
+             "clusters": dataclasses.asdict(clusters.report),
+             "embedding": dataclasses.asdict(emb.report),
+             "setup_time": time.perf_counter() - t0}
+    return Shell(options, topology, rest, emb, clusters, energy, solver, rest.copy(),
+                 rest.copy(), vertex_normals(rest, sub.faces), a, facts=facts)
+
+
+__all__ = ["Shell", "ShellOptions", "SkinOptions", "build_shell", "cluster_options",
+           "mean_edge_length", "shell_params"]

@@ -101,7 +101,7 @@ def profiled_run(scene_path: Path, frames: int, overrides: list[str],
     """Prepare and run the scene under cProfile; return the run, the profile, set-up time."""
     scene = with_frames(load_scene(scene_path, [*overrides, "output.render=false"]), frames)
     t0 = time.perf_counter()
-    run = prepare(scene, out, MPI.COMM_WORLD)
+    run = prepare(scene, out, MPI.COMM_WORLD, overwrite=True)
     setup = time.perf_counter() - t0
     profile = cProfile.Profile()
     profile.enable()

@@ -34,10 +34,11 @@ COARSE = ("--frames", "2", "--set", "body.dt=0.5", "--set", "shell.subdivision.l
 
 def run_scene(scene: str, out: Path, *extra: str,
               timeout: float = 600) -> subprocess.CompletedProcess[str]:
-    """Run ``python -m wrinkles run scenes/<scene>.toml --out OUT EXTRA`` (serial)."""
+    """Run ``python -m wrinkles run scenes/<scene>.toml --out OUT --overwrite EXTRA`` (serial)."""
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     return subprocess.run([sys.executable, "-m", "wrinkles", "run",
-                           str(REPO / "scenes" / f"{scene}.toml"), "--out", str(out), *extra],
+                           str(REPO / "scenes" / f"{scene}.toml"), "--out", str(out), "--overwrite",
+                           *extra],
                           capture_output=True, text=True, timeout=timeout, cwd=REPO, env=env)
 
 

@@ -21,19 +21,20 @@ agreement the failing rank prints its message and calls ``MPI_Abort`` with the e
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import functools
-import json
 import os
 import sys
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
 from meshes.errors import InputError, SolverError, WrinklesError
-from wrinkles.render import add_parser as add_render_parser
-from wrinkles.render import command_render
+from wrinkles import plot, render, view
+from wrinkles.provenance import version_text
 
 AGREE_SECONDS = 10.0
 """How long a failing rank waits for the other ranks to fail too before ``MPI_Abort``."""
@@ -51,6 +52,7 @@ def build_parser() -> ArgumentParser:
     """Return the ``wrinkles`` argument parser."""
     parser = ArgumentParser(prog="wrinkles", description="Embedded thin shells for wrinkle "
                             "simulation on FEniCSx: run a scene file.")
+    parser.add_argument("--version", action="version", version=version_text())
     commands = parser.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
     run = add_scene_arguments(commands.add_parser("run", help="run a scene file (TOML)"))
     run.add_argument("--out", type=Path, default=None,
@@ -61,9 +63,14 @@ def build_parser() -> ArgumentParser:
                      help="continue the run in --out from its last completed frame (same "
                      "scene; time, output, newton and shell.solver may "
                      "change); --restart is an alias")
+    run.add_argument("--overwrite", action="store_true",
+                     help="replace the run in --out (its files are removed once the scene, "
+                     "mesh and shell are checked; other files stay)")
     add_scene_arguments(commands.add_parser(
         "check", help="validate a scene file and print the resolved scene as JSON"))
-    add_render_parser(commands)
+    render.add_parser(commands)
+    plot.add_parser(commands)
+    view.add_parser(commands)
     return parser
 
 
@@ -93,12 +100,48 @@ def command_run(args: argparse.Namespace) -> int:
     if args.frames is not None:
         scene = with_frames(scene, args.frames)
     out = args.out if args.out is not None else Path("out") / args.scene.stem
-    run = prepare(scene, out, MPI.COMM_WORLD, restart=args.resume)
+    comm = MPI.COMM_WORLD
+    run = prepare(scene, out, comm, restart=args.resume, overwrite=args.overwrite,
+                  log=lambda line: print(line, flush=True))
     try:
-        run_frames(run, log=lambda line: print(line, flush=True))
+        with frame_progress(run.n_frames - len(run.records), comm.size) as log:
+            run_frames(run, log=log)
     except SolverError as exc:
         raise SolverError(record_failure(run, exc)) from None
     return 0
+
+
+@contextlib.contextmanager
+def frame_progress(frames: int, ranks: int) -> Iterator[Callable[[str], None]]:
+    """Yield the frame logger: a live bar with ETA on a terminal, plain lines otherwise.
+
+    The bar (rich) is used for a serial run whose standard output is a terminal; the progress
+    lines are printed above it as they come. Under MPI or into a file or pipe every line is
+    printed as it is, flushed.
+    """
+    if ranks > 1 or not sys.stdout.isatty():
+        yield lambda line: print(line, flush=True)
+        return
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    columns = (TextColumn("frames"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+               TextColumn("ETA"), TimeRemainingColumn())
+    with Progress(*columns) as progress:
+        task = progress.add_task("frames", total=frames)
+
+        def log(line: str) -> None:
+            progress.console.print(line, highlight=False, markup=False)
+            if line.startswith("frame "):
+                progress.advance(task)
+
+        yield log
 
 
 def record_failure(run: Any, exc: SolverError) -> str:
@@ -128,17 +171,35 @@ def short_diagnostic(diagnostic: dict[str, Any]) -> str:
 
 
 def command_check(args: argparse.Namespace) -> int:
-    """Load and validate the scene (no mesh is built) and print it resolved, as JSON."""
+    """Validate the scene and its mesh; print the scene and the values the run will use (JSON).
+
+    The mesh is built or read and validated, the shell's surface subdivided and its
+    stiffnesses, cluster sizing and memory estimate computed (no dolfinx body, no solve).
+    """
     from models.backend import MPI
+    from models.embedding.surface import boundary_surface
+    from wrinkles.output import json_text
+    from wrinkles.runner import read_tet_mesh
     from wrinkles.scene import load_scene, scene_dict
+    from wrinkles.shell_setup import shell_report
 
     scene = load_scene(args.scene, args.overrides)
-    if MPI.COMM_WORLD.rank == 0:
-        print(json.dumps(scene_dict(scene), indent=2), flush=True)
+    if MPI.COMM_WORLD.rank != 0:
+        return 0
+    mesh = read_tet_mesh(scene.mesh)
+    resolved: dict[str, Any] = {"mesh": {"source": mesh.source, "points": int(mesh.n_points),
+                                         "tets": int(mesh.n_tets)},
+                                "newton": dataclasses.asdict(scene.newton.internals)}
+    if scene.shell is not None:
+        surface = boundary_surface(mesh.points, mesh.tets)
+        resolved["shell"] = shell_report(scene.shell, scene.material, surface.vertices,
+                                         surface.faces)
+    print(json_text({"scene": scene_dict(scene), "resolved": resolved}), end="", flush=True)
     return 0
 
 
-COMMANDS = {"run": command_run, "check": command_check, "render": command_render}
+COMMANDS = {"run": command_run, "check": command_check, "render": render.command_render,
+            "plot": plot.command_plot, "view": view.command_view}
 """Sub-command name -> its function (``args -> exit code``)."""
 
 

@@ -97,6 +97,8 @@ def _convert_scalar(value: Any, tp: type, key: str, src: Source) -> Any:
         if math.isnan(value):
             raise src.error(key, "must be a number, got nan")
         return float(value)
+    if tp is float and isinstance(value, str) and value in ("inf", "+inf", "-inf"):
+        return float(value)  # strict JSON's spelling (summary.json), TOML writes inf
     if tp is str and isinstance(value, str):
         return value
     raise src.error(key, f"expected {tp.__name__}, got {type(value).__name__} {value!r}")

@@ -47,6 +47,7 @@ import numpy as np
 from meshes.errors import InputError
 from models.backend import MPI, PETSc, dolfinx
 from wrinkles.collective import on_root
+from wrinkles.provenance import wrinkles_version
 
 XDMF_NAME = "body.xdmf"
 SUMMARY_NAME = "summary.json"
@@ -397,7 +398,8 @@ ET.register_namespace("xi", XI[1:-1])
 @functools.cache
 def package_versions() -> dict[str, str]:
     """Versions of Python, PETSc, dolfinx and the scientific packages (computed once per run)."""
-    versions = {"python": platform.python_version(), "dolfinx": dolfinx.__version__,
+    versions = {"wrinkles": wrinkles_version(), "python": platform.python_version(),
+                "dolfinx": dolfinx.__version__,
                 "petsc": ".".join(str(v) for v in PETSc.Sys.getVersion()),
                 "petsc4py": str(getattr(sys.modules.get("petsc4py"), "__version__", "?")),
                 "mpi": MPI.Get_library_version().splitlines()[0].strip()}
@@ -409,21 +411,45 @@ def package_versions() -> dict[str, str]:
     return versions
 
 
+NON_FINITE: dict[str, float] = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}
+"""How strict JSON spells the non-finite floats (strings; the scene loader reads them back)."""
+
+
+def strict(data: Any) -> Any:
+    """Return ``data`` with every non-finite float as the string ``"inf"``, ``"-inf"`` or ``"nan"``.
+
+    Standard JSON has no ``Infinity`` / ``NaN`` tokens (Python writes them, most readers
+    refuse them); numpy scalars become Python numbers on the way.
+    """
+    if isinstance(data, Mapping):
+        return {str(k): strict(v) for k, v in data.items()}
+    if isinstance(data, list | tuple):
+        return [strict(v) for v in data]
+    if isinstance(data, np.generic):
+        data = data.item()
+    if isinstance(data, float) and not math.isfinite(data):
+        return "nan" if math.isnan(data) else ("inf" if data > 0 else "-inf")
+    return data
+
+
 def json_text(data: Any) -> str:
-    """JSON text of ``data``: top-level entries indented, items of top-level lists one line each.
+    """Return strict JSON text of ``data`` (:func:`strict`), compactly indented.
+
+    Top-level entries are indented, items of top-level lists one line each.
 
     ``json.dumps`` with ``indent`` runs the pure-Python encoder; compact items use the C
     encoder, so rewriting ``summary.json`` after every frame stays cheap for long runs.
     """
+    data = strict(data)
     if not isinstance(data, dict):
-        return json.dumps(data, indent=2, allow_nan=True) + "\n"
+        return json.dumps(data, indent=2, allow_nan=False) + "\n"
     parts = []
     for key, value in data.items():
         if isinstance(value, list) and value:
-            items = ",\n".join("    " + json.dumps(item, allow_nan=True) for item in value)
+            items = ",\n".join("    " + json.dumps(item, allow_nan=False) for item in value)
             text = "[\n" + items + "\n  ]"
         else:
-            text = json.dumps(value, indent=2, allow_nan=True).replace("\n", "\n  ")
+            text = json.dumps(value, indent=2, allow_nan=False).replace("\n", "\n  ")
         parts.append(f"  {json.dumps(str(key))}: {text}")
     return "{\n" + ",\n".join(parts) + "\n}\n"
 

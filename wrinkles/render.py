@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from meshes.errors import InputError
+from wrinkles.rigid_output import BALLS_XDMF_NAME, read_balls
 from wrinkles.shell_output import SHELL_XDMF_NAME, ShellFrame, read_shell_series
 
 
@@ -86,8 +87,8 @@ def colour_range(frames: Sequence[ShellFrame], options: RenderOptions) -> tuple[
 
 
 def render_frame(mesh: Any, path: Path, clim: tuple[float, float], options: RenderOptions,
-                 camera: Any | None = None) -> Any:
-    """Render one PolyData off-screen into ``path``; return the camera used (reuse it)."""
+                 camera: Any | None = None, balls: Any | None = None) -> Any:
+    """Render a PolyData (and the balls' spheres) off-screen; return the camera (reuse it)."""
     import pyvista as pv
     from vtkmodules.vtkCommonCore import vtkLogger
 
@@ -100,6 +101,8 @@ def render_frame(mesh: Any, path: Path, clim: tuple[float, float], options: Rend
     title = "log10 bending energy density" if options.log_scale else "bending energy density"
     plotter.add_mesh(mesh, scalars=scalars, clim=clim, cmap=options.colormap, smooth_shading=True,
                      specular=0.5, specular_power=20.0, scalar_bar_args={"title": title})
+    if balls is not None:
+        plotter.add_mesh(balls, color="firebrick", smooth_shading=True, specular=0.6)
     if camera is None:
         plotter.view_vector(options.view)
         plotter.camera.zoom(1.2)
@@ -109,6 +112,24 @@ def render_frame(mesh: Any, path: Path, clim: tuple[float, float], options: Rend
     used = plotter.camera.copy()
     plotter.close()
     return used
+
+
+def ball_spheres(path: Path) -> Callable[[float], Any | None]:
+    """Return ``spheres(t)``: the balls nearest to time ``t`` as one mesh (or ``None``)."""
+    import pyvista as pv
+
+    if not path.is_file():
+        return lambda t: None
+    radii, steps = read_balls(path)
+    times = np.array([s.time for s in steps])
+
+    def spheres(t: float) -> Any:
+        step = steps[int(np.argmin(np.abs(times - t)))]
+        return pv.merge([pv.Sphere(radius=float(r), center=c, theta_resolution=48,
+                                   phi_resolution=48) for r, c in zip(radii, step.centers,
+                                                                      strict=True)])
+
+    return spheres
 
 
 def write_gif(pngs: Sequence[Path], path: Path, options: RenderOptions) -> None:
@@ -141,11 +162,14 @@ def render_run(out: Path, options: RenderOptions | None = None) -> list[Path]:
     folder = Path(out) / opts.frames_dir
     folder.mkdir(parents=True, exist_ok=True)
     clim, camera, pngs = colour_range(frames, opts), None, []
+    spheres = ball_spheres(Path(out) / BALLS_XDMF_NAME)
     for k, frame in enumerate(frames):
         pngs.append(folder / f"shell_{k:04d}.png")
-        camera = render_frame(polydata(rest, faces, frame), pngs[-1], clim, opts, camera)
+        camera = render_frame(polydata(rest, faces, frame), pngs[-1], clim, opts, camera,
+                              spheres(frame.time))
     last = Path(out) / "shell.png"
-    render_frame(polydata(rest, faces, frames[-1]), last, clim, opts, camera)
+    render_frame(polydata(rest, faces, frames[-1]), last, clim, opts, camera,
+                 spheres(frames[-1].time))
     gif = Path(out) / "shell.gif"
     write_gif(pngs, gif, opts)
     return [*pngs, last, gif]

@@ -36,6 +36,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shlex
+import shutil
+import sys
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -64,11 +67,15 @@ from wrinkles.checkpoint import (
 from wrinkles.collective import on_root, shared
 from wrinkles.output import (
     SUMMARY_NAME,
+    WORK_DIR,
     XDMF_NAME,
     XdmfSeries,
+    json_text,
     summary_document,
     write_json_atomic,
 )
+from wrinkles.provenance import source_commit
+from wrinkles.rigid_output import BALLS_XDMF_NAME, BallStep, ball_steps, write_balls
 from wrinkles.scene import Scene, SceneMesh, mesh_builder, scene_dict
 from wrinkles.shell_output import make_writer
 from wrinkles.shell_setup import Shell, build_shell
@@ -111,15 +118,22 @@ class FrameRecord:
     stage_times: dict[str, float] = field(default_factory=dict)
     details: dict[str, Any] = field(default_factory=dict)
 
-    def progress_line(self, n_frames: int) -> str:
+    def progress_line(self, n_frames: int, static: bool = False) -> str:
         """Return the one-line progress report printed by rank 0.
 
-        Two-way frames add ``coupling=<iterations>`` and, when the body/shell fixed point
-        stopped at ``max_iterations`` above its tolerance, ``NOT converged (change ...)``.
+        Static scenes show the load parameter instead of a time. Frames with a shell add its
+        Newton iterations and solve time; two-way frames add ``coupling=<iterations>`` and,
+        when the body/shell fixed point stopped at ``max_iterations`` above its tolerance,
+        ``NOT converged (change ...)``.
         """
-        line = (f"frame {self.frame:4d}/{n_frames}  t={self.time:9.4f} s  "
+        clock = f"load={self.time:7.4f}" if static else f"t={self.time:9.4f} s"
+        line = (f"frame {self.frame:4d}/{n_frames}  {clock}  "
                 f"newton={self.newton_iterations:3d}  energy={self.energy: .6e} J  "
-                f"min detF={self.min_det_f:.4f}  wall={self.wall_time:7.3f} s")
+                f"min detF={self.min_det_f:.4f}")
+        if "shell_iterations" in self.details:
+            line += (f"  shell={self.details['shell_iterations']:3d} its "
+                     f"{self.details.get('shell_time_total', 0.0):6.2f} s")
+        line += f"  wall={self.wall_time:7.3f} s"
         if "coupling_iterations" in self.details:
             line += f"  coupling={self.details['coupling_iterations']}"
             if not self.details.get("coupling_converged", True):
@@ -207,6 +221,7 @@ class Run:
     facts: dict[str, Any] = field(default_factory=dict)
     shell: Shell | None = None
     rigid: BallCoupling | None = None
+    started: float = field(default_factory=time.perf_counter)
 
     @property
     def comm(self) -> MPI.Comm:
@@ -219,15 +234,25 @@ class Run:
         return self.scene.time.n_frames(self.scene.body.dt)
 
 
-def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False) -> Run:
-    """Create the output directory, the distributed mesh, the body and its stage (collective).
+def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False,
+            overwrite: bool = False, log: Callable[[str], None] | None = None) -> Run:
+    """Build mesh, body, balls and shell, then create the output and the stages (collective).
 
-    With ``restart`` the body state, the frame records and the XDMF series are taken over
-    from the run in ``out`` (its last completed frame); otherwise a new run starts at t = 0.
+    Everything that can be refused (the output directory, the mesh, the shell set-up and its
+    memory) is checked before the first file is written. With ``restart`` the body state, the
+    frame records and the XDMF series are taken over from the run in ``out`` (its last
+    completed frame); otherwise a new run starts at t = 0, into a directory that holds no
+    other run unless ``overwrite`` (then that run's files are removed first). ``log`` (rank 0)
+    announces each set-up stage as it ends.
     """
-    on_root(comm, lambda: make_output_dir(out))
+    say = stage_logger(log if comm.rank == 0 else None)
+    on_root(comm, lambda: check_output_dir(out, restart, overwrite))
     mesh = distributed_mesh(scene.mesh, comm)
+    cells = mesh.topology.index_map(3).size_global
+    say(f"mesh: {cells} tets on {comm.size} rank(s)")
     body = make_body(scene, mesh)
+    say(f"body: P{scene.body.degree}, {body.V.dofmap.index_map.size_global * 3} dofs, forms "
+        f"compiled")
     stages: list[tuple[str, Stage]] = [("body", body_stage(body, scene.time.steps_per_frame))]
     run = Run(scene, out, body, stages)
     if scene.rigid is not None and scene.rigid.balls:
@@ -235,19 +260,38 @@ def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False) -> R
         run.stages = [("body+rigid", rigid_stage(run.rigid, scene.time.steps_per_frame))]
     run.facts = {"ranks": comm.size, "status": "running", "frames_planned": run.n_frames,
                  "started": datetime.now(UTC).isoformat(timespec="seconds"),
+                 "command": " ".join(shlex.quote(a) for a in sys.argv),
+                 "commit": source_commit() if comm.rank == 0 else None,
                  "mesh": mesh_facts(mesh, body)}
+    shell = (None if scene.shell is None
+             else build_shell(body, scene.shell, scene.material, log=say))
     state: BodyState | None = None
     if restart:
         state = resume(run)
         if run.rigid is not None:
             run.rigid.restore(checkpoint_stage(state, "rigid"))
     else:
+        if overwrite:
+            on_root(comm, lambda: clear_run(out))
         start(run)
-    if scene.shell is not None:
-        attach_shell(run, state)
+    if shell is not None:
+        attach_shell(run, shell, state)
     if not restart:
         save_frame(run, 0)
     return run
+
+
+def stage_logger(log: Callable[[str], None] | None) -> Callable[[str], None]:
+    """Return ``say(text)``: ``log("set-up: <text> (<seconds> s)")`` timing from the last call."""
+    last = [time.perf_counter()]
+
+    def say(text: str) -> None:
+        now = time.perf_counter()
+        if log is not None:
+            log(f"set-up: {text} ({now - last[0]:.2f} s)")
+        last[0] = now
+
+    return say
 
 
 def make_body(scene: Scene, mesh: dolfinx.mesh.Mesh) -> Body:
@@ -291,8 +335,8 @@ def rigid_record(coupling: BallCoupling, infos: list[RigidStepInfo]) -> dict[str
             "momentum": coupling.balance()}
 
 
-def attach_shell(run: Run, state: BodyState | None) -> None:
-    """Build the shell and its output, restore its ``state`` if resumed, add its stage(s).
+def attach_shell(run: Run, shell: Shell, state: BodyState | None) -> None:
+    """Create the shell's output, restore its ``state`` if resumed, add its stage(s).
 
     Collective. ``state`` is the checkpoint of a resumed run (``None`` for a new run).
 
@@ -300,9 +344,7 @@ def attach_shell(run: Run, state: BodyState | None) -> None:
         InputError: the checkpoint being resumed holds no shell state.
 
     """
-    options = run.scene.shell
-    assert options is not None  # only called for scenes with a [shell] table
-    shell = build_shell(run.body, options, run.scene.material)
+    options = shell.options
     if state is not None:
         restore_shell(shell, checkpoint_stage(state, "shell"))
         coupling = options.internals.coupling
@@ -391,8 +433,8 @@ def previous_run(run: Run, frame: int) -> tuple[list[FrameRecord], dict[str, Any
 
 
 def jsonable(data: Any) -> Any:
-    """Return ``data`` as it reads back from JSON (tuples become lists)."""
-    return json.loads(json.dumps(data))
+    """Return ``data`` as it reads back from ``summary.json`` (tuples become lists, inf "inf")."""
+    return json.loads(json_text(data))
 
 
 def first_difference(old: Any, new: Any, prefix: str = "",
@@ -414,8 +456,14 @@ def first_difference(old: Any, new: Any, prefix: str = "",
 
 
 def save_frame(run: Run, frame: int) -> None:
-    """Write the summary and the restart checkpoint of a completed frame (collective)."""
+    """Write the summary, the balls' series and the checkpoint of a completed frame."""
     write_summary(run)
+    if run.rigid is not None and run.scene.rigid is not None and run.comm.rank == 0:
+        balls = run.scene.rigid.balls
+        initial = BallStep(0.0, np.array([b.center for b in balls], dtype=float),
+                           np.array([b.velocity for b in balls], dtype=float))
+        write_balls(run.out / BALLS_XDMF_NAME, ball_steps(initial, run.records),
+                    np.array([b.radius for b in balls]))
     if run.scene.output.checkpoint:
         state = gather_state(run.body, frame)
         if state is not None and run.shell is not None:
@@ -426,12 +474,50 @@ def save_frame(run: Run, frame: int) -> None:
             write_state(run.out / CHECKPOINT_NAME, state)
 
 
-def make_output_dir(out: Path) -> None:
-    """Create ``out`` (and parents); InputError if that is impossible."""
+RUN_MARKERS: tuple[str, ...] = (SUMMARY_NAME, CHECKPOINT_NAME, XDMF_NAME, "shell.xdmf")
+"""Files that show a directory holds a run."""
+RUN_FILES: tuple[str, ...] = (*RUN_MARKERS, "body.h5", "body.steps", "shell.h5", "shell.steps",
+                              BALLS_XDMF_NAME, "shell.png", "shell.gif", "frames", "plots.png",
+                              "view.py", "view.png", "vtk", WORK_DIR)
+"""What a run writes into its output directory (``--overwrite`` removes these, nothing else)."""
+
+
+def check_output_dir(out: Path, resume: bool, overwrite: bool) -> None:
+    """Refuse an output directory that holds another run; create ``out`` and probe writing.
+
+    A new run never mixes its files with another's: ``out`` may not hold a run's files
+    unless the run is resumed (``--resume``) or replaced (``--overwrite``).
+
+    Raises:
+        InputError: ``out`` is a file, holds another run, cannot be created or written.
+
+    """
+    if resume and overwrite:
+        raise InputError("--resume and --overwrite exclude each other")
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: is a file, not a directory")
+    found = [name for name in RUN_MARKERS if (out / name).exists()]
+    if found and not (resume or overwrite):
+        raise InputError(f"--out {out}: holds another run ({', '.join(found)}); use --resume "
+                         f"to continue it or --overwrite to replace it")
     try:
         out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".write_probe"
+        probe.write_bytes(b"")
+        probe.unlink()
     except OSError as exc:
-        raise InputError(f"--out {out}: cannot create the output directory ({exc})") from None
+        raise InputError(f"--out {out}: cannot write the output directory "
+                         f"({exc.strerror or exc})") from None
+
+
+def clear_run(out: Path) -> None:
+    """Remove the files of the run in ``out`` (:data:`RUN_FILES`; other files stay)."""
+    for name in RUN_FILES:
+        path = out / name
+        if path.is_dir():
+            shutil.rmtree(path)
+        elif path.exists():
+            path.unlink()
 
 
 def output_fields(body: Body) -> dict[str, Any]:
@@ -483,15 +569,19 @@ def run_frames(run: Run, log: Callable[[str], None] = print) -> Run:
         try:
             record = run_frame(run, frame)
         except SolverError as exc:
-            run.facts.update(status="failed", error=str(exc), failed_frame=frame)
+            run.facts.update(status="failed", error=str(exc), failed_frame=frame,
+                             wall_time=time.perf_counter() - run.started)
             write_summary(run)
             raise
         run.records.append(record)
         save_frame(run, frame)
         if run.comm.rank == 0:
-            log(record.progress_line(run.n_frames))
+            log(record.progress_line(run.n_frames, run.scene.body.dynamics == "static"))
     run.facts["status"] = "completed"
+    run.facts["wall_time"] = time.perf_counter() - run.started
     write_summary(run)
+    if run.comm.rank == 0:
+        shutil.rmtree(run.out / WORK_DIR, ignore_errors=True)
     render_if_asked(run, log)
     return run
 

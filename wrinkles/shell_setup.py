@@ -18,15 +18,18 @@ The per-frame solve is :mod:`wrinkles.shell_stage`.
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
 
 from meshes.errors import InputError
+from models.backend import MPI
 from models.coupling import PenaltyCoupling
-from models.embedding.clusters import ClusterOptions, Clusters, build_clusters
+from models.embedding.clusters import ClusterOptions, Clusters, build_clusters, cluster_sizing
 from models.embedding.embedding import (
     Embedding,
     EmbeddingOptions,
@@ -43,7 +46,7 @@ from solvers.body import Body
 from solvers.coupling import CouplingOptions
 from solvers.multigrid import ShellHierarchy
 from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver
-from wrinkles.config import expert, flatten, unflatten
+from wrinkles.config import expert, flatten, to_dict, unflatten
 
 
 @dataclass(frozen=True)
@@ -371,23 +374,108 @@ class Shell:
         return self.energy.params
 
 
-def build_shell(body: Body, options: ShellOptions, material: Material) -> Shell:
+BYTES_PER_VERTEX: dict[str, float] = {"direct": 26e3, "multigrid": 9e3}
+"""Peak memory per shell vertex of a run by linear method [bytes]: from the measured peaks of
+``benchmarks/scaling.py`` (direct MUMPS 15 GiB at 640k vertices, multigrid-CG 10 GiB at
+1.26M), rounded up."""
+
+
+def shell_vertices(surface_faces: int, levels: int) -> int:
+    """Return the vertex count of a closed surface of ``surface_faces`` faces, subdivided.
+
+    Each of the ``levels`` subdivisions multiplies the faces by 4; a closed genus-0 triangle
+    surface has ``V = F / 2 + 2`` vertices.
+    """
+    return surface_faces * 4**levels // 2 + 2
+
+
+def available_memory() -> float:
+    """Memory this machine can still give [bytes] (``MemAvailable``; else the total)."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024.0
+    except OSError:
+        pass
+    return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+
+
+def check_memory(options: ShellOptions, surface_faces: int, ranks_here: int = 1) -> None:
+    """Refuse a shell that would not fit in memory, before it is built.
+
+    Every rank of this machine holds a whole shell (``ranks_here`` of them).
+
+    Raises:
+        InputError: naming ``shell.subdivision.levels``, the vertex count, the estimate and
+            the memory available.
+
+    """
+    levels = options.subdivision.levels
+    n = shell_vertices(surface_faces, levels)
+    method = options.solver.method
+    need = BYTES_PER_VERTEX[method] * n * ranks_here
+    have = available_memory()
+    if need > 0.9 * have:
+        raise InputError(
+            f"shell.subdivision.levels = {levels}: the shell would have about {n:,} vertices "
+            f"and need about {need / 2**30:.1f} GiB ({method} solver, {ranks_here} rank(s) on "
+            f"this machine), more than the {have / 2**30:.1f} GiB available; lower the levels "
+            f"or coarsen the body mesh")
+
+
+def shell_report(options: ShellOptions, material: Material, vertices: np.ndarray,
+                 faces: np.ndarray) -> dict[str, Any]:
+    """Return the values a run will use for the shell over the body surface.
+
+    What ``wrinkles check`` prints: the shell's size, mean edge length and memory estimate,
+    the stiffnesses (from the skin when there is one), the cluster sizing and every internal
+    option. Subdivides the surface (after :func:`check_memory`), builds no clusters.
+    """
+    check_memory(options, faces.shape[0])
+    sub = subdivide(vertices, faces, options.internals.subdivision)
+    topology = ShellTopology.from_faces(sub.faces, sub.vertices.shape[0])
+    a = mean_edge_length(sub.vertices, topology)
+    params = shell_params(options, a)
+    count, spacing, sigma = cluster_sizing(cluster_options(options, material), sub.vertices,
+                                           sub.faces)
+    n = sub.vertices.shape[0]
+    return {"vertices": n, "faces": int(sub.faces.shape[0]), "mean_edge_length": a,
+            "memory_estimate_gib": BYTES_PER_VERTEX[options.solver.method] * n / 2**30,
+            "k_L": params.k_L, "k_A": params.k_A, "k_B": params.k_B, "k_P": params.k_P,
+            "k_F": params.k_F,
+            "clusters": {"count": count, "spacing": spacing, "sigma": sigma},
+            "internals": flatten(to_dict(options.internals))}
+
+
+def build_shell(body: Body, options: ShellOptions, material: Material,
+                log: Callable[[str], None] = lambda text: None) -> Shell:
     """Surface -> subdivision -> rest shell, B, clusters and H, energy and solver (collective).
 
-    Every rank builds the same shell (the surface is gathered identically on all ranks).
+    Every rank builds the same shell (the surface is gathered identically on all ranks). A
+    shell that would not fit in memory is refused first (:func:`check_memory`). ``log``
+    announces each stage as it ends.
     """
     t0 = time.perf_counter()
     surface = mesh_surface(body.mesh)
+    local = body.mesh.comm.Split_type(MPI.COMM_TYPE_SHARED)
+    check_memory(options, surface.faces.shape[0], local.size)
+    local.Free()
     sub = subdivide(surface.vertices, surface.faces, options.internals.subdivision)
     topology = ShellTopology.from_faces(sub.faces, sub.vertices.shape[0])
+    log(f"shell: surface of {surface.faces.shape[0]} triangles subdivided "
+        f"{options.subdivision.levels} times: {sub.vertices.shape[0]} vertices")
     emb = build_embedding(body.V, sub.vertices, options.internals.embedding)
+    log("shell: embedding B")
     rest = np.ascontiguousarray(sub.vertices)
     a = mean_edge_length(rest, topology)
     clusters = build_clusters(rest, sub.faces, cluster_options(options, material))
+    log(f"shell: {clusters.H.shape[0]} clusters")
     params = shell_params(options, a)
     energy = ShellEnergy(topology, RestState.from_positions(topology, rest), params, clusters.H)
     solver = ShellNewtonSolver(energy, options.internals.newton,  # type: ignore[arg-type]
                                hierarchy=ShellHierarchy(sub))
+    log("shell: energy and solver")
     facts = {"vertices": int(rest.shape[0]), "faces": int(sub.faces.shape[0]),
              "coarse_surface_vertices": int(surface.vertices.shape[0]),
              "mean_edge_length": a, "k_L": params.k_L, "k_A": params.k_A,
@@ -400,4 +488,5 @@ def build_shell(body: Body, options: ShellOptions, material: Material) -> Shell:
 
 
 __all__ = ["Shell", "ShellOptions", "SkinOptions", "build_shell", "cluster_options",
+           "shell_report",
            "mean_edge_length", "shell_params"]

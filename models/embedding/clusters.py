@@ -604,9 +604,9 @@ def smallest_singular_value(H: sp.csr_matrix) -> float:
     return float(np.sqrt(max(float(lam[0]), 0.0)))
 
 
-def _sizing(opts: ClusterOptions, vertices: FloatArray, faces: IntArray
+def cluster_sizing(opts: ClusterOptions, vertices: FloatArray, faces: IntArray
             ) -> tuple[int | None, float | None, float | None]:
-    """``(count, spacing, sigma)`` from the options (physics, explicit values or default)."""
+    """Return ``(count, spacing, sigma)`` from the options (physics, explicit or default)."""
     if opts.count is not None:
         if opts.method == "bfs":
             r = np.sqrt(2.0 * surface_area(vertices, faces) / (np.sqrt(3.0) * opts.count))
@@ -618,7 +618,7 @@ def _sizing(opts: ClusterOptions, vertices: FloatArray, faces: IntArray
         lam = wrinkle_wavelength(opts.skin_thickness, opts.skin_E, opts.skin_nu, opts.body_E,
                                  opts.body_nu)
         return None, lam / 2.0, opts.sigma if opts.sigma is not None else lam / np.pi
-    return _sizing(ClusterOptions(method=opts.method, count=200, sigma=opts.sigma),
+    return cluster_sizing(ClusterOptions(method=opts.method, count=200, sigma=opts.sigma),
                    vertices, faces)
 
 
@@ -647,7 +647,7 @@ def build_clusters(vertices: FloatArray, faces: IntArray,
         raise InputError(f"ClusterOptions.seed_vertex: {opts.seed_vertex} >= vertex count "
                          f"{v.shape[0]}")
     graph = edge_graph(v, f)
-    count, spacing, sigma = _sizing(opts, v, f)
+    count, spacing, sigma = cluster_sizing(opts, v, f)
     if opts.method == "bfs" and spacing is not None:
         centres, r = greedy_bfs_centres(graph, opts.seed_vertex, spacing), spacing
     else:

@@ -56,7 +56,8 @@ FULL = ["shell.subdivision.levels=3", "shell.skin.thickness=2.3986e-4"]
 def run_degree(degree: int, out: Path, quick: bool) -> Run:
     """Run the scene with a P``degree`` body (quietly)."""
     sets = [f"body.degree={degree}"] + ([] if quick else FULL)
-    return run_frames(prepare(load_scene(SCENE, sets), out, MPI.COMM_SELF), lambda line: None)
+    scene = load_scene(SCENE, sets)
+    return run_frames(prepare(scene, out, MPI.COMM_SELF, overwrite=True), lambda line: None)
 
 
 def coarse_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:

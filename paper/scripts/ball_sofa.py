@@ -64,8 +64,8 @@ def impact_numbers(s: dict[str, np.ndarray], scene: dict[str, Any]) -> dict[str,
 
     The impact speed is the free-fall speed ``|w_{k-1} + g_z T|`` the ball would have at the
     end of the first contact frame ``k`` (frame duration ``T``), the definition of
-    ``tests/test_wrinkles/test_scene_ball_sofa.py``; the rebound speed is the largest upward velocity
-    after it.
+    ``tests/test_wrinkles/test_scene_ball_sofa.py``; the rebound speed is the largest upward
+    velocity after it.
     """
     contact = np.flatnonzero(s["force"] > 0.0)
     if contact.size == 0:

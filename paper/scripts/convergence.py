@@ -1,7 +1,7 @@
 """Body convergence: manufactured-solution L2 errors of P1/P2 and Saint-Venant torsion.
 
-Calls ``tests/test_solvers/test_body_convergence.py::l2_error`` (the Neo-Hookean manufactured problem on
-the unit cube) and ``tests/test_solvers/test_body_rotation.py`` (the twisted P2 cylinder: torque against
+Calls :func:`validation.manufactured.l2_error` (the Neo-Hookean manufactured problem on
+the unit cube) and :mod:`validation.torsion` (the twisted P2 cylinder: torque against
 T = G J theta / L). Writes ``data/convergence.json`` and ``figures/body_convergence.png``,
 ``figures/torsion.png``.
 """

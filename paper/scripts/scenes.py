@@ -1,7 +1,7 @@
 """Run the default, bent-bar and twisted-cylinder scenes from the CLI, render, measure.
 
 Each scene runs as ``python -m wrinkles run scenes/<name>.toml --out BUILD/runs/<name>``
-(quick mode: the coarse settings of ``tests/test_wrinkles/test_scenes_bend_twist.py``: the full load in 2
+(quick mode: the coarse settings of :data:`validation.scene_runs.COARSE`: the full load in 2
 frames, one subdivision level). The last frame of the shell is rendered with
 ``wrinkles/render.py`` into ``figures/scene_<name>.png``; the physical numbers are those of the
 tests (``bent_bar_metrics``, ``twisted_cylinder_metrics``); sizes, iterations and wall

@@ -113,7 +113,7 @@ def run_shell(ratio: float, h: float, out: Path, quick: bool,
     """Run the embedded-shell scene for one ratio; return its measured numbers."""
     scene = load_scene(SCENE, shell_overrides(ratio, h, quick) + (extra or []))
     t0 = time.perf_counter()
-    run = run_frames(prepare(scene, out, MPI.COMM_SELF), lambda line: None)
+    run = run_frames(prepare(scene, out, MPI.COMM_SELF, overwrite=True), lambda line: None)
     shell = run.shell
     assert shell is not None
     heights = normal_heights(shell.x, shell.y, shell.topology.faces)

@@ -75,6 +75,8 @@ def test_damaged_work_copy_never_reaches_the_committed_series(tmp_path):
     out = tmp_path / "out"
     assert wrinkles(*run_args(out)[:3], "3", *run_args(out)[4:]).returncode == 0
     work = out / ".work"
+    assert not work.exists()  # a completed run leaves no work copy behind
+    work.mkdir()  # as a kill in the middle of the next append would leave it
     (work / "body.h5").write_bytes(b"\x89HDF\r\n\x1a\n" + b"\0" * 64)  # truncated HDF5
     (work / "body.xdmf").write_text("<Xdmf><Domain><Grid")  # half-written XML
     assert assert_series_intact(out, 3) == 4

@@ -224,7 +224,7 @@ def test_gaussian_weights_several_reference_batches():
 def test_build_clusters_matches_reference_pipeline(mesh, method):
     name, v, f, g = mesh
     c = build_clusters(v, f, ClusterOptions(method=method, count=30, seed_vertex=3))
-    count, spacing, sigma = cl._sizing(ClusterOptions(method=method, count=30), v, f)
+    count, spacing, sigma = cl.cluster_sizing(ClusterOptions(method=method, count=30), v, f)
     if method == "bfs":
         centres, r = ref_greedy_bfs_centres(g, 3, spacing), spacing
     else:

@@ -1,0 +1,124 @@
+"""The run as a user touches it: no run clobbered, strict summary, version, errors that are the
+user's reported as such."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+from support import DEFAULT_SCENE, DROP_BLOCK, wrinkles
+
+from wrinkles.output import json_text, strict
+from wrinkles.shell_setup import BYTES_PER_VERTEX, shell_vertices
+
+TWO = ("--frames", "2")
+
+
+def test_a_new_run_into_a_used_directory_is_refused_and_leaves_it_intact(tmp_path):
+    out = tmp_path / "out"
+    assert wrinkles("run", str(DROP_BLOCK), "--out", str(out), *TWO).returncode == 0
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    summary = (out / "summary.json").read_text()
+    proc = wrinkles("run", str(DROP_BLOCK), "--out", str(out), "--frames", "1")
+    assert proc.returncode == 1
+    assert f"--out {out}: holds another run" in proc.stderr and "--overwrite" in proc.stderr
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
+    assert (out / "summary.json").read_text() == summary
+
+
+def test_overwrite_replaces_the_run_and_keeps_other_files(tmp_path):
+    out = tmp_path / "out"
+    assert wrinkles("run", str(DROP_BLOCK), "--out", str(out), *TWO).returncode == 0
+    (out / "notes.txt").write_text("mine")
+    proc = wrinkles("run", str(DROP_BLOCK), "--out", str(out), "--frames", "1", "--overwrite")
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(summary["frames"]) == 1 and summary["run"]["status"] == "completed"
+    assert (out / "notes.txt").read_text() == "mine"
+    assert not (out / ".work").exists()
+
+
+def test_a_run_refused_at_set_up_writes_nothing(tmp_path):
+    """A shell that cannot be built (here: too large for the machine) is refused before the
+    first file is written, and the exit is a one-line bad-input error."""
+    out = tmp_path / "out"
+    proc = wrinkles("run", str(DEFAULT_SCENE), "--out", str(out), "--set",
+                    "shell.subdivision.levels=12")
+    assert proc.returncode == 1, proc.stderr
+    assert "shell.subdivision.levels = 12: the shell would have about" in proc.stderr
+    assert "GiB available" in proc.stderr and "Traceback" not in proc.stderr
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_memory_estimate_of_the_levels():
+    assert shell_vertices(12, 0) == 8 and shell_vertices(12, 1) == 26  # a cube's octahedron..
+    assert shell_vertices(20, 2) == 162  # the icosahedron subdivided twice
+    assert BYTES_PER_VERTEX["direct"] > BYTES_PER_VERTEX["multigrid"]
+
+
+def test_unwritable_output_is_bad_input(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    proc = wrinkles("run", str(DROP_BLOCK), "--out", str(blocker / "out"), *TWO)
+    assert proc.returncode == 1
+    assert "--out" in proc.stderr and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_summary_is_strict_json_with_provenance(tmp_path):
+    out = tmp_path / "out"
+    assert wrinkles("run", str(DROP_BLOCK), "--out", str(out), *TWO).returncode == 0
+    text = (out / "summary.json").read_text()
+    summary = json.loads(text, parse_constant=lambda token: pytest.fail(f"token {token}"))
+    run = summary["run"]
+    assert run["command"].split()[-4:] == ["--out", str(out), "--frames", "2"]
+    assert run["wall_time"] > 0 and run["status"] == "completed"
+    assert "commit" in run and summary["versions"]["wrinkles"]
+
+
+def test_strict_spells_non_finite_numbers_as_strings():
+    data = {"a": math.inf, "b": [-math.inf, math.nan, 1.5], "c": {"d": float("nan")}}
+    assert strict(data) == {"a": "inf", "b": ["-inf", "nan", 1.5], "c": {"d": "nan"}}
+    assert json.loads(json_text(data))["a"] == "inf"
+
+
+def test_version():
+    proc = wrinkles("--version")
+    assert proc.returncode == 0 and proc.stdout.startswith("wrinkles 0.")
+
+
+def test_resume_and_overwrite_exclude_each_other(tmp_path):
+    proc = wrinkles("run", str(DROP_BLOCK), "--out", str(tmp_path), "--resume", "--overwrite")
+    assert proc.returncode == 1 and "exclude each other" in proc.stderr
+
+
+@pytest.mark.parametrize("levels", [0])
+def test_check_prints_the_values_the_run_uses(levels):
+    """With a [shell.skin] the stiffnesses come from the skin: ``check`` prints those (and
+    the shell's size), not the energy table's defaults."""
+    proc = wrinkles("check", str(DEFAULT_SCENE), "--set", f"shell.subdivision.levels={levels}")
+    assert proc.returncode == 0, proc.stderr
+    resolved = json.loads(proc.stdout)["resolved"]
+    shell = resolved["shell"]
+    assert shell["vertices"] == 165 and shell["mean_edge_length"] > 0  # 326 faces at level 0
+    # D / 6 = E h^3 / (72 (1 - nu^2)) of the 50 MPa, 0.5 mm skin (cylinder calibration)
+    assert shell["k_B"] == pytest.approx(5.0e7 * 5.0e-4**3 / (72.0 * (1.0 - 0.3**2)), rel=1e-12)
+    assert shell["k_L"] != 1e3 and shell["clusters"]["spacing"] > 0
+    assert shell["internals"]["energy.penalty_hessian"] == "low_rank"
+    assert resolved["mesh"]["tets"] == 431 and resolved["mesh"]["source"].startswith("box(")
+
+
+def test_progress_announces_set_up_and_shows_the_shell_and_the_load(tmp_path):
+    proc = wrinkles("run", str(DEFAULT_SCENE), "--out", str(tmp_path / "out"), "--frames", "2",
+                    "--set", "shell.subdivision.levels=0", "--set", "output.render=false")
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    set_up = [k for k, line in enumerate(lines) if line.startswith("set-up: ")]
+    frames = [k for k, line in enumerate(lines) if line.startswith("frame ")]
+    assert len(frames) == 2 and set_up and max(set_up) < min(frames)
+    assert any("vertices" in lines[k] for k in set_up)
+    assert any("clusters" in lines[k] for k in set_up)
+    for k in frames:  # a static scene: the load parameter, and the shell's iterations
+        assert " load= 0." in lines[k] and " t=" not in lines[k]
+        assert " shell=" in lines[k] and " its " in lines[k]

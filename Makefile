@@ -25,7 +25,9 @@ $(STAMP): requirements.lock pyproject.toml tools/find_python.sh
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/wrinkles run $(SCENE) --out $(OUT)
+	$(VENV)/bin/wrinkles run $(SCENE) --out $(OUT) --overwrite
+	$(VENV)/bin/wrinkles view $(OUT)
+	$(VENV)/bin/wrinkles plot $(OUT)
 
 test: $(STAMP)
 	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)

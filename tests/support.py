@@ -39,6 +39,11 @@ def wrinkles(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[st
                           text=True, timeout=timeout, cwd=REPO, env=env)
 
 
+def progress_lines(stdout: str) -> list[str]:
+    """The per-frame progress lines of a run's standard output (set-up lines left out)."""
+    return [line for line in stdout.splitlines() if line.startswith("frame ")]
+
+
 def read_series(path: Path) -> tuple[np.ndarray, list[tuple[float, dict[str, np.ndarray]]]]:
     """Points and ``(time, point data)`` of every step of an XDMF time series (meshio)."""
     with meshio.xdmf.TimeSeriesReader(str(path)) as reader:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 from support import DROP_BLOCK as DEFAULT
-from support import read_series, wrinkles
+from support import progress_lines, read_series, wrinkles
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +46,7 @@ def test_restart_continues_bitwise(straight, tmp_path):
     out = tmp_path / "out"
     run_ok("--frames", "6", "--out", str(out))
     stdout = run_ok("--frames", "10", "--out", str(out), "--restart")
-    assert [line.split()[1] for line in stdout.splitlines()] == ["7/10", "8/10", "9/10", "10/10"]
+    assert [line.split()[1] for line in progress_lines(stdout)] == ["7/10", "8/10", "9/10", "10/10"]
     assert_same_run(straight, out, rtol=0.0)  # the state is restored exactly
     summary = json.loads((out / "summary.json").read_text())
     assert [r["frame"] for r in summary["frames"]] == list(range(1, 11))
@@ -61,7 +61,7 @@ def test_restart_drops_output_written_after_the_checkpoint(straight, tmp_path):
     run_ok("--frames", "6", "--out", str(out))
     shutil.copy(early / "checkpoint.h5", out / "checkpoint.h5")
     stdout = run_ok("--frames", "10", "--out", str(out), "--restart")
-    assert stdout.splitlines()[0].split()[1] == "5/10"
+    assert progress_lines(stdout)[0].split()[1] == "5/10"
     assert_same_run(straight, out, rtol=0.0)
 
 
@@ -76,7 +76,7 @@ def test_two_rank_run_restarted_on_two_ranks(straight, tmp_path, mpiexec):
     assert mpiexec([*args, "--frames", "6"], n=2, timeout=300).returncode == 0
     proc = mpiexec([*args, "--frames", "10", "--restart"], n=2, timeout=300)
     assert proc.returncode == 0, proc.stderr
-    assert len(proc.stdout.splitlines()) == 4
+    assert len(progress_lines(proc.stdout)) == 4
     assert_same_run(straight, out, rtol=1e-6)  # Newton rtol 1e-9, another partition
 
 

@@ -38,7 +38,7 @@ def test_extra_stage_runs_after_the_body_and_lands_in_the_summary(tmp_path):
 
 def test_check_prints_the_resolved_scene(capsys):
     assert cli.main(["check", str(DEFAULT), "--set", "material.E=7e4"]) == 0
-    data = json.loads(capsys.readouterr().out)
+    data = json.loads(capsys.readouterr().out)["scene"]
     assert data["material"]["E"] == 7.0e4
     scene = scene_from_dict(data, REPO)
     assert scene_dict(scene) == data

@@ -19,6 +19,7 @@ from support import (
     FRAMES,
     assert_same_as,
     assert_series_intact,
+    progress_lines,
     run_args,
     wrinkles,
 )
@@ -66,7 +67,7 @@ def test_restart_is_an_alias_of_resume(straight, tmp_path):
     assert wrinkles(*run_args(out)[:3], "5", *run_args(out)[4:]).returncode == 0
     proc = wrinkles(*run_args(out, "--restart"))
     assert proc.returncode == 0, proc.stderr
-    assert [line.split()[1] for line in proc.stdout.splitlines()][0] == f"6/{FRAMES}"
+    assert [line.split()[1] for line in progress_lines(proc.stdout)][0] == f"6/{FRAMES}"
     assert_same_as(straight, out, atol_rel=1e-12)
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import warnings
 from pathlib import Path
 
 import meshio
@@ -18,7 +19,7 @@ import numpy as np
 
 from meshes.errors import InputError
 from meshes.tetmesh import TetMesh
-from meshes.validate import ValidationOptions, resolve_options, validate
+from meshes.validate import MeshWarning, ValidationOptions, resolve_options, validate
 
 #: meshio cell types read as linear tets, with the columns that are their corners.
 TET_CELL_TYPES: dict[str, slice] = {"tetra": slice(0, 4), "tetra10": slice(0, 4)}
@@ -99,4 +100,22 @@ def load(path: str | os.PathLike[str], options: ValidationOptions | None = None,
     opts = resolve_options(options, overrides)
     p = Path(path)
     mesh = read_meshio(p)
-    return validate(mesh.points, tet_cells(mesh, str(p)), source=str(p), options=opts)
+    tets = tet_cells(mesh, str(p))
+    ignored = ignored_cell_data(mesh)
+    if ignored:
+        warnings.warn(f"{p}: cell data ignored, one material for the whole body: "
+                      f"{ignored}", MeshWarning, stacklevel=2)
+    return validate(mesh.points, tets, source=str(p), options=opts)
+
+
+def ignored_cell_data(mesh: meshio.Mesh) -> str:
+    """Describe the tets' cell data with several values (regions, materials) left unused."""
+    parts = []
+    for name, blocks in mesh.cell_data.items():
+        values = [np.asarray(data) for block, data in zip(mesh.cells, blocks, strict=False)
+                  if block.type in TET_CELL_TYPES and len(data)]
+        distinct = np.unique(np.concatenate(values)) if values else np.zeros(0)
+        if distinct.size > 1:  # one value tags one region: nothing to lose
+            shown = ", ".join(str(v) for v in distinct[:6]) + (", ..." if distinct.size > 6 else "")
+            parts.append(f"{name} ({distinct.size} values: {shown})")
+    return "; ".join(parts)

@@ -192,11 +192,16 @@ class Body:
         P2 nodes) and component ``k`` in the blocked space is ``3 i + k``.
         """
         X = self.V.tabulate_dof_coordinates()
+        owned = self.V.dofmap.index_map.size_local
         bcs, constants = [], []
-        for pin in self.options.pins:
+        self.pin_nodes: list[int] = []
+        for index, pin in enumerate(self.options.pins):
             nodes = np.flatnonzero(pin.select(X)).astype(np.int32)
-            if self.mesh.comm.allreduce(nodes.size, op=MPI.SUM) == 0:
-                raise InputError(f"pin {pin} selects no node of the mesh")
+            count = int(self.mesh.comm.allreduce(int(np.count_nonzero(nodes < owned)),
+                                                 op=MPI.SUM))
+            if count == 0:
+                raise InputError(f"body.pins[{index}]: selects no node of the mesh ({pin})")
+            self.pin_nodes.append(count)
             for k in pin.components:
                 dofs = (3 * nodes + k).astype(np.int32)
                 value = _PinValue(self.mesh, self.V, pin, k, dofs, X[nodes])

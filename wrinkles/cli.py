@@ -28,6 +28,7 @@ import os
 import sys
 import time
 import traceback
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
@@ -251,9 +252,15 @@ def agreement_comm() -> Any:
     return MPI.COMM_WORLD.Dup()
 
 
+def warning_line(message: Warning | str, category: type[Warning], *_: Any, **__: Any) -> str:
+    """Format a warning as one ``warning: <message>`` line (no source line, no file)."""
+    return f"warning: {one_line(str(message))}\n"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``wrinkles`` console script; return the exit code."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    warnings.formatwarning = warning_line
     try:
         args = build_parser().parse_args(argv)
     except InputError as exc:

@@ -40,6 +40,7 @@ import shlex
 import shutil
 import sys
 import time
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -50,6 +51,7 @@ import numpy as np
 
 import meshes
 from meshes.errors import InputError, SolverError
+from meshes.report import mesh_report
 from meshes.tetmesh import TetMesh
 from models.backend import MPI, dolfinx, mesh_from_arrays
 from models.rigid import RigidStepInfo
@@ -146,10 +148,15 @@ class FrameRecord:
 
 
 def read_tet_mesh(spec: SceneMesh) -> TetMesh:
-    """Build the coarse mesh with its gmsh builder, or read and validate its file (serial)."""
-    if spec.builder:
-        return mesh_builder(spec.builder)(**spec.params)
-    return meshes.load(spec.file)
+    """Build the coarse mesh with its gmsh builder, or read and validate its file (serial).
+
+    What a user should know about the accepted mesh (pieces, cracks, slivers,
+    :mod:`meshes.report`) is issued as a :class:`meshes.MeshWarning`.
+    """
+    tet = mesh_builder(spec.builder)(**spec.params) if spec.builder else meshes.load(spec.file)
+    for message in mesh_report(tet).warnings(tet.source):
+        warnings.warn(message, meshes.MeshWarning, stacklevel=2)
+    return tet
 
 
 def distributed_mesh(spec: SceneMesh, comm: MPI.Comm) -> dolfinx.mesh.Mesh:
@@ -252,7 +259,13 @@ def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False,
     say(f"mesh: {cells} tets on {comm.size} rank(s)")
     body = make_body(scene, mesh)
     say(f"body: P{scene.body.degree}, {body.V.dofmap.index_map.size_global * 3} dofs, forms "
-        f"compiled")
+        f"compiled" + (f"; pins hold {', '.join(map(str, body.pin_nodes))} nodes"
+                       if body.pin_nodes else ""))
+    for index, (pin, count) in enumerate(zip(scene.body.pins, body.pin_nodes, strict=True)):
+        if count < 3 and comm.rank == 0:
+            warnings.warn(f"body.pins[{index}]: holds only {count} node(s) of the mesh (a "
+                          f"{pin.kind} pin with tol = {pin.tol:g}); widen tol or the region",
+                          meshes.MeshWarning, stacklevel=2)
     stages: list[tuple[str, Stage]] = [("body", body_stage(body, scene.time.steps_per_frame))]
     run = Run(scene, out, body, stages)
     if scene.rigid is not None and scene.rigid.balls:
@@ -262,9 +275,10 @@ def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False,
                  "started": datetime.now(UTC).isoformat(timespec="seconds"),
                  "command": " ".join(shlex.quote(a) for a in sys.argv),
                  "commit": source_commit() if comm.rank == 0 else None,
-                 "mesh": mesh_facts(mesh, body)}
+                 "mesh": mesh_facts(mesh, body), "pin_nodes": body.pin_nodes}
     shell = (None if scene.shell is None
-             else build_shell(body, scene.shell, scene.material, log=say))
+             else build_shell(body, scene.shell, scene.material, log=say,
+                              source=scene.mesh.file or f"mesh.builder {scene.mesh.builder}"))
     state: BodyState | None = None
     if restart:
         state = resume(run)

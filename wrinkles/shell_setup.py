@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -27,9 +28,16 @@ from typing import Any, Literal
 import numpy as np
 
 from meshes.errors import InputError
+from meshes.validate import MeshWarning
 from models.backend import MPI
 from models.coupling import PenaltyCoupling
-from models.embedding.clusters import ClusterOptions, Clusters, build_clusters, cluster_sizing
+from models.embedding.clusters import (
+    ClusterOptions,
+    Clusters,
+    build_clusters,
+    cluster_sizing,
+    wrinkle_wavelength,
+)
 from models.embedding.embedding import (
     Embedding,
     EmbeddingOptions,
@@ -448,13 +456,43 @@ def shell_report(options: ShellOptions, material: Material, vertices: np.ndarray
             "internals": flatten(to_dict(options.internals))}
 
 
+MIN_EDGES_PER_WAVELENGTH: float = 4.0
+"""Fewer shell edges per wrinkle wavelength cannot resolve the wrinkles (a warning)."""
+MIN_CLUSTER_VERTICES: int = 7
+"""Clusters of fewer vertices (median support) pin the wrinkles down (a warning)."""
+
+
+def sizing_warnings(options: ShellOptions, clusters: Clusters, material: Material,
+                    edge_length: float) -> list[str]:
+    """Messages when the shell cannot resolve the wrinkles its skin makes, naming the keys."""
+    out = []
+    if options.skin is not None:
+        lam = wrinkle_wavelength(options.skin.thickness, options.skin.E, options.skin.nu,
+                                 material.E, material.nu)
+        if lam < MIN_EDGES_PER_WAVELENGTH * edge_length:
+            out.append(f"shell.subdivision.levels = {options.subdivision.levels}: the skin's "
+                       f"wrinkle wavelength {lam:.3g} m spans only {lam / edge_length:.1f} shell "
+                       f"edges (mean edge {edge_length:.3g} m; at least "
+                       f"{MIN_EDGES_PER_WAVELENGTH:g} resolve it): raise the levels or "
+                       f"shell.skin.thickness")
+    support = np.diff(clusters.H.indptr)
+    if support.size and np.median(support) < MIN_CLUSTER_VERTICES:
+        out.append(f"shell.clusters: the median cluster holds {np.median(support):g} shell "
+                   f"vertices (at least {MIN_CLUSTER_VERTICES} let wrinkles form under it): "
+                   f"set a larger shell.clusters.spacing or a smaller count, or raise "
+                   f"shell.subdivision.levels")
+    return out
+
+
 def build_shell(body: Body, options: ShellOptions, material: Material,
-                log: Callable[[str], None] = lambda text: None) -> Shell:
+                log: Callable[[str], None] = lambda text: None, source: str = "the mesh") -> Shell:
     """Surface -> subdivision -> rest shell, B, clusters and H, energy and solver (collective).
 
     Every rank builds the same shell (the surface is gathered identically on all ranks). A
     shell that would not fit in memory is refused first (:func:`check_memory`). ``log``
-    announces each stage as it ends.
+    announces each stage as it ends; a shell too coarse for its skin's wrinkles gets a
+    :class:`meshes.MeshWarning` (:func:`sizing_warnings`); ``source`` names the body mesh in
+    the refusal of a sliver surface triangle.
     """
     t0 = time.perf_counter()
     surface = mesh_surface(body.mesh)
@@ -469,10 +507,19 @@ def build_shell(body: Body, options: ShellOptions, material: Material,
     log("shell: embedding B")
     rest = np.ascontiguousarray(sub.vertices)
     a = mean_edge_length(rest, topology)
-    clusters = build_clusters(rest, sub.faces, cluster_options(options, material))
+    sizing = cluster_options(options, material)
+    clusters = build_clusters(rest, sub.faces, sizing)
     log(f"shell: {clusters.H.shape[0]} clusters")
+    if body.mesh.comm.rank == 0:
+        for message in sizing_warnings(options, clusters, material, a):
+            warnings.warn(message, MeshWarning, stacklevel=2)
     params = shell_params(options, a)
-    energy = ShellEnergy(topology, RestState.from_positions(topology, rest), params, clusters.H)
+    try:
+        rest_state = RestState.from_positions(topology, rest)
+    except InputError as exc:
+        raise InputError(f"{source}: its surface makes a shell the solver cannot use ({exc}); "
+                         f"remesh the body (mesh.file) or refine it (mesh.params.h)") from None
+    energy = ShellEnergy(topology, rest_state, params, clusters.H)
     solver = ShellNewtonSolver(energy, options.internals.newton,  # type: ignore[arg-type]
                                hierarchy=ShellHierarchy(sub))
     log("shell: energy and solver")

@@ -122,3 +122,22 @@ def test_progress_announces_set_up_and_shows_the_shell_and_the_load(tmp_path):
     for k in frames:  # a static scene: the load parameter, and the shell's iterations
         assert " load= 0." in lines[k] and " t=" not in lines[k]
         assert " shell=" in lines[k] and " its " in lines[k]
+
+
+def test_warnings_name_the_keys_a_user_changes(tmp_path):
+    """A shell too coarse for its skin's wrinkles and a pin that holds one node are warned
+    about on one line each, naming the scene keys."""
+    proc = wrinkles("run", str(DEFAULT_SCENE), "--out", str(tmp_path / "a"), "--frames", "1",
+                    "--set", "shell.subdivision.levels=0", "--set", "output.render=false")
+    assert proc.returncode == 0, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("warning: ")]
+    assert any("shell.subdivision.levels = 0: the skin's wrinkle wavelength" in ln
+               for ln in lines)
+    assert any(ln.startswith("warning: shell.clusters: the median cluster holds") for ln in lines)
+    pin = ('body.pins=[{kind="box", box_min=[0.0, 0.0, 0.02], box_max=[0.0, 0.0, 0.02], '
+           'tol=1e-9}]')
+    proc = wrinkles("run", str(DROP_BLOCK), "--out", str(tmp_path / "b"), "--frames", "1",
+                    "--set", pin)
+    assert proc.returncode == 0, proc.stderr
+    assert "warning: body.pins[0]: holds only 1 node(s)" in proc.stderr
+    assert "pins hold 1 nodes" in proc.stdout

@@ -474,7 +474,8 @@ def read_toml(path: Path) -> dict[str, Any]:
         raise InputError(f"{path}: cannot read the scene file ({exc.strerror})") from None
 
 
-def load[T](cls: type[T], path: str | Path, overrides: list[str] | None = None) -> T:
+def load[T](cls: type[T], path: str | Path, overrides: list[str] | None = None,
+            overlays: Sequence[Callable[[dict[str, Any], str], Any]] = ()) -> T:
     """Load the dataclass ``cls`` from a TOML file, with ``--set key=value`` overrides.
 
     A top-level ``quality`` key selects a preset overlay (:mod:`wrinkles.presets`), merged
@@ -484,6 +485,8 @@ def load[T](cls: type[T], path: str | Path, overrides: list[str] | None = None) 
         cls: root dataclass of the document (``wrinkles.scene.Scene`` for scene files).
         path: the TOML file.
         overrides: ``key=value`` strings applied after reading, in order.
+        overlays: further ``overlay(doc, file name)`` fills of absent keys, applied after the
+            preset (e.g. the defaults that follow a scene's ``up`` axis).
 
     Returns:
         The validated instance.
@@ -493,6 +496,8 @@ def load[T](cls: type[T], path: str | Path, overrides: list[str] | None = None) 
     doc = read_toml(path)
     keys = [apply_override(doc, text, path.name) for text in overrides or []]
     apply_quality(doc, path.name)
+    for overlay in overlays:
+        overlay(doc, path.name)
     return build(cls, doc, "", Source(path.name, frozenset(keys)))
 
 

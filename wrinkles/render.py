@@ -12,6 +12,8 @@ small. The GIF is assembled with Pillow.
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -34,9 +36,11 @@ class RenderOptions:
         height: image height [px].
         frames_dir: sub-directory of the run for the per-frame PNGs.
         gif_ms: duration of one GIF frame [ms].
-        view: camera direction, a vector from the focal point towards the camera.
+        view: camera direction, a vector from the focal point towards the camera; ``None``
+            looks from the side and above the scene's ``up`` axis (:data:`CAMERAS`).
         colormap: matplotlib colormap name for the bending energy density.
         log_scale: colour by log10 of the density (wrinkle crests stand out).
+        up: the scene's up axis ("x", "y", "z"); ``None`` reads it from the run's summary.
 
     """
 
@@ -44,9 +48,10 @@ class RenderOptions:
     height: int = 640
     frames_dir: str = "frames"
     gif_ms: int = 150
-    view: tuple[float, float, float] = (1.0, -1.6, 1.1)
+    view: tuple[float, float, float] | None = None
     colormap: str = "viridis"
     log_scale: bool = True
+    up: str | None = None
 
     def __post_init__(self) -> None:
         if self.width < 16 or self.height < 16:
@@ -54,6 +59,23 @@ class RenderOptions:
                              f"{self.width}x{self.height}")
         if self.gif_ms < 1:
             raise InputError(f"render.gif_ms: must be >= 1, got {self.gif_ms}")
+
+
+CAMERAS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
+    "z": ((1.0, -1.6, 1.1), (0.0, 0.0, 1.0)),
+    "y": ((1.0, 1.1, 1.6), (0.0, 1.0, 0.0)),
+    "x": ((1.1, 1.0, -1.6), (1.0, 0.0, 0.0)),
+}
+"""Scene ``up`` axis -> camera direction (towards the camera) and view-up vector."""
+
+
+def scene_up(out: Path) -> str:
+    """Return the ``up`` axis of the run in ``out`` (from its summary; "z" without one)."""
+    try:
+        up = json.loads((Path(out) / "summary.json").read_text())["scene"].get("up", "z")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return "z"
+    return up if up in CAMERAS else "z"
 
 
 def polydata(rest: np.ndarray, faces: np.ndarray, frame: ShellFrame) -> Any:
@@ -104,7 +126,8 @@ def render_frame(mesh: Any, path: Path, clim: tuple[float, float], options: Rend
     if balls is not None:
         plotter.add_mesh(balls, color="firebrick", smooth_shading=True, specular=0.6)
     if camera is None:
-        plotter.view_vector(options.view)
+        direction, view_up = CAMERAS[options_up(options)]
+        plotter.view_vector(options.view or direction, viewup=view_up)
         plotter.camera.zoom(1.2)
     else:
         plotter.camera = camera
@@ -132,6 +155,11 @@ def ball_spheres(path: Path) -> Callable[[float], Any | None]:
     return spheres
 
 
+def options_up(options: RenderOptions) -> str:
+    """Return the up axis the camera stands on ("z" unless the options name another)."""
+    return options.up if options.up in CAMERAS else "z"
+
+
 def write_gif(pngs: Sequence[Path], path: Path, options: RenderOptions) -> None:
     """Assemble PNG frames into an animated GIF with Pillow (looping)."""
     from PIL import Image
@@ -152,6 +180,8 @@ def render_run(out: Path, options: RenderOptions | None = None) -> list[Path]:
 
     """
     opts = options or RenderOptions()
+    if opts.up is None:
+        opts = dataclasses.replace(opts, up=scene_up(Path(out)))
     series = Path(out) / SHELL_XDMF_NAME
     if not series.is_file() or not series.with_suffix(".h5").is_file():
         raise InputError(f"{series}: no shell series to render (run a scene with a [shell] "

@@ -269,6 +269,7 @@ def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False,
     stages: list[tuple[str, Stage]] = [("body", body_stage(body, scene.time.steps_per_frame))]
     run = Run(scene, out, body, stages)
     if scene.rigid is not None and scene.rigid.balls:
+        check_balls_outside(body, scene)
         run.rigid = BallCoupling(body, scene.rigid, len(scene.body.contacts))
         run.stages = [("body+rigid", rigid_stage(run.rigid, scene.time.steps_per_frame))]
     run.facts = {"ranks": comm.size, "status": "running", "frames_planned": run.n_frames,
@@ -306,6 +307,34 @@ def stage_logger(log: Callable[[str], None] | None) -> Callable[[str], None]:
         last[0] = now
 
     return say
+
+
+def check_balls_outside(body: Body, scene: Scene) -> None:
+    """Refuse a rigid ball whose centre starts inside the body (collective).
+
+    Raises:
+        InputError: naming ``rigid.balls[i].center``.
+
+    """
+    assert scene.rigid is not None
+    centers = np.array([ball.center for ball in scene.rigid.balls], dtype=float)
+    mesh = body.mesh
+    cells = mesh.geometry.dofmaps[0][:mesh.topology.index_map(3).size_local]
+    inside = np.array([cells_containing(mesh.geometry.x[cells], c) for c in centers])
+    inside = mesh.comm.allreduce(inside, op=MPI.LOR)
+    for index in np.flatnonzero(inside):
+        raise InputError(f"rigid.balls[{index}].center = {centers[index].tolist()}: inside the "
+                         f"body (a ball must start outside it)")
+
+
+def cells_containing(vertices: np.ndarray, point: np.ndarray, tol: float = 1e-12) -> bool:
+    """Whether ``point`` lies in one of the tets ``vertices`` ((m, 4, 3), affine)."""
+    a = vertices[:, 1:] - vertices[:, :1]
+    b = point - vertices[:, 0]
+    ok = np.abs(np.linalg.det(a)) > 0.0
+    lam = np.linalg.solve(np.transpose(a[ok], (0, 2, 1)), b[ok][..., None])[..., 0]
+    inside = (lam >= -tol).all(axis=1) & (lam.sum(axis=1) <= 1.0 + tol)
+    return bool(inside.any())
 
 
 def make_body(scene: Scene, mesh: dolfinx.mesh.Mesh) -> Body:

@@ -19,13 +19,14 @@ it: no ``[[body.contacts]]`` means no obstacle, no ``[[body.pins]]`` no pins, an
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import importlib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from meshes.errors import InputError
 from models.body import BodyOptions
@@ -146,6 +147,9 @@ class Scene:
     Attributes:
         mesh: the coarse body mesh (required).
         title: free text shown in the summary.
+        up: the mesh's up axis ("z" by default; meshes from other tools are often "y"):
+            gravity, plane contact and pin normals default to it (:func:`apply_up`) and the
+            renders and the ParaView view stand on it.
         material: the body's hyperelastic material.
         body: the body's discretisation, dynamics, time step, gravity, pins and contacts.
         newton: the body's Newton solver.
@@ -161,6 +165,7 @@ class Scene:
 
     mesh: SceneMesh
     title: str = ""
+    up: Literal["x", "y", "z"] = "z"
     material: Material = field(default_factory=Material)
     body: BodyOptions = field(default_factory=BodyOptions)
     newton: NewtonKeys = field(default_factory=NewtonKeys)
@@ -205,6 +210,38 @@ def resolve(scene: Scene, base: Path, src: Source) -> Scene:
     return dataclasses.replace(scene, mesh=_resolve_mesh(scene.mesh, base, src))
 
 
+UP_AXES: dict[str, tuple[float, float, float]] = {
+    "x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
+"""The scene's ``up`` axis -> its unit vector."""
+STANDARD_GRAVITY = 9.81
+"""Default gravity [m/s^2], along minus the scene's ``up`` axis."""
+
+
+def apply_up(doc: dict[str, Any], where: str = "<dict>") -> None:
+    """Fill the defaults that follow ``up`` into the document, where absent (in place).
+
+    ``body.gravity`` is ``-9.81 up``; the ``normal`` of a plane contact or a plane pin is
+    ``up``. Keys written in the file (or ``--set``) are left as they are.
+
+    Raises:
+        InputError: ``up`` is not one of ``"x"``, ``"y"``, ``"z"``.
+
+    """
+    up = doc.get("up", "z")
+    if up not in UP_AXES:
+        raise InputError(f"{where}: up: must be one of 'x', 'y', 'z', got {up!r}")
+    e = list(UP_AXES[up])
+    body = doc.setdefault("body", {}) if up != "z" or "body" in doc else None
+    if not isinstance(body, dict):
+        return
+    if up != "z":
+        body.setdefault("gravity", [-STANDARD_GRAVITY * c if c else 0.0 for c in e])
+    for key, kind in (("contacts", "obstacle"), ("pins", "kind")):
+        for entry in body.get(key, []) if isinstance(body.get(key), list) else []:
+            if isinstance(entry, dict) and entry.get(kind, "plane") == "plane":
+                entry.setdefault("normal", list(e))
+
+
 def load_scene(path: str | Path, overrides: list[str] | None = None) -> Scene:
     """Load and validate a scene file with ``--set key=value`` overrides.
 
@@ -213,7 +250,7 @@ def load_scene(path: str | Path, overrides: list[str] | None = None) -> Scene:
 
     """
     path = Path(path)
-    scene = load(Scene, path, overrides)
+    scene = load(Scene, path, overrides, overlays=(apply_up,))
     keys = frozenset(o.partition("=")[0].strip() for o in overrides or [])
     return resolve(scene, path.resolve().parent, Source(path.name, keys))
 
@@ -221,6 +258,8 @@ def load_scene(path: str | Path, overrides: list[str] | None = None) -> Scene:
 def scene_from_dict(data: dict[str, Any], base: Path, name: str = "<dict>") -> Scene:
     """Build a scene from a plain dict (e.g. the ``scene`` entry of ``summary.json``)."""
     src = Source(name)
+    data = copy.deepcopy(data)
+    apply_up(data, name)
     return resolve(build(Scene, data, "", src), base, src)
 
 

@@ -24,6 +24,7 @@ import numpy as np
 
 from meshes.errors import InputError
 from wrinkles.output import XDMF_NAME, XML_HEADER, write_text_atomic
+from wrinkles.render import CAMERAS, scene_up
 from wrinkles.rigid_output import BALLS_XDMF_NAME, read_balls
 from wrinkles.shell_output import SHELL_XDMF_NAME, read_shell_series
 
@@ -86,8 +87,8 @@ if os.path.exists(balls_path):
 scene.UpdateAnimationUsingDataTimeSteps()
 scene.AnimationTime = scene.EndTime
 view.CameraFocalPoint = [0.0, 0.0, 0.0]
-view.CameraPosition = [1.0, -1.6, 1.1]
-view.CameraViewUp = [0.0, 0.0, 1.0]
+view.CameraPosition = {direction}
+view.CameraViewUp = {view_up}
 view.ResetCamera()
 Render()
 SaveScreenshot(os.path.join(RUN, "view.png"), view, ImageResolution=[1280, 800])
@@ -105,7 +106,10 @@ def write_view_script(run: Path) -> Path:
         raise InputError(f"{run}: no body.xdmf or shell.xdmf (is it the output directory of a "
                          f"run with output.xdmf = true?)")
     path = run / VIEW_SCRIPT
-    write_text_atomic(path, SCRIPT.replace("{run}", str(run)))
+    direction, view_up = CAMERAS[scene_up(run)]
+    text = (SCRIPT.replace("{run}", str(run)).replace("{direction}", str(list(direction)))
+            .replace("{view_up}", str(list(view_up))))
+    write_text_atomic(path, text)
     return path
 
 

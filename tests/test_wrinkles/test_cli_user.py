@@ -7,7 +7,7 @@ import json
 import math
 
 import pytest
-from support import DEFAULT_SCENE, DROP_BLOCK, wrinkles
+from support import DEFAULT_SCENE, DROP_BLOCK, SCENE, wrinkles
 
 from wrinkles.output import json_text, strict
 from wrinkles.shell_setup import BYTES_PER_VERTEX, shell_vertices
@@ -141,3 +141,28 @@ def test_warnings_name_the_keys_a_user_changes(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "warning: body.pins[0]: holds only 1 node(s)" in proc.stderr
     assert "pins hold 1 nodes" in proc.stdout
+
+
+def test_up_axis_sets_gravity_and_plane_normals_unless_written(tmp_path):
+    from wrinkles.scene import load_scene, scene_dict
+
+    text = DROP_BLOCK.read_text().replace('title = "', 'up = "y"\ntitle = "', 1)
+    text = "\n".join(ln for ln in text.splitlines()
+                     if not ln.startswith(("gravity", "normal")))
+    path = tmp_path / "yup.toml"
+    path.write_text(text)
+    body = scene_dict(load_scene(path))["body"]
+    assert body["gravity"] == [0.0, -9.81, 0.0]
+    assert body["contacts"][0]["normal"] == [0.0, 1.0, 0.0]
+    written = scene_dict(load_scene(path, ["body.gravity=[0.0, 0.0, -1.0]"]))["body"]
+    assert written["gravity"] == [0.0, 0.0, -1.0]
+    with pytest.raises(Exception, match="up: must be one of"):
+        load_scene(path, ["up=w"])
+
+
+def test_a_ball_starting_inside_the_body_is_refused(tmp_path):
+    ball = 'rigid.balls=[{radius=0.15, mass=5.0, center=[1.0, 0.35, 0.3]}]'
+    proc = wrinkles("run", str(SCENE), "--out", str(tmp_path / "out"), "--frames", "1",
+                    "--set", ball)
+    assert proc.returncode == 1
+    assert "rigid.balls[0].center = [1.0, 0.35, 0.3]: inside the body" in proc.stderr

@@ -13,7 +13,7 @@ from support import REPO
 
 from meshes.errors import InputError
 from wrinkles.config import Source, apply_override, build, parse_literal, to_dict
-from wrinkles.output import OutputOptions
+from wrinkles.output import OutputOptions, json_text
 from wrinkles.scene import Scene, load_scene, scene_dict, scene_from_dict, with_frames
 
 DEFAULT = REPO / "scenes" / "drop_block.toml"  # the falling block (default.toml: wrinkles)
@@ -289,14 +289,15 @@ stiffness = 1e6
 frames = 3
 """
     scene = load_scene(write_scene(tmp_path, text))
-    data = json.loads(json.dumps(scene_dict(scene)))
+    data = json.loads(json_text(scene_dict(scene)))  # strict JSON, as summary.json has it
+    assert data["body"]["pins"][0]["box_min"] == ["-inf", "-inf", -1.0]
     again = scene_from_dict(data, tmp_path, "summary.json")
     assert again == scene
     assert again.body.pins[0].box_min == (-math.inf, -math.inf, -1.0)
     assert data["body"]["contacts"][1]["stiffness"] == 1.0e6
     assert data["body"]["contacts"][0]["stiffness"] is None
     assert data["mesh"]["params"] == {"lx": 0.4, "ly": 0.4, "lz": 0.2, "h": 0.1}
-    assert set(data) == {"mesh", "title", "material", "body", "newton", "time", "output",
+    assert set(data) == {"mesh", "title", "up", "material", "body", "newton", "time", "output",
                          "shell"}
 
 

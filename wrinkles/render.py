@@ -69,6 +69,10 @@ CAMERAS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]
 """Scene ``up`` axis -> camera direction (towards the camera) and view-up vector."""
 
 
+LOG_DECADES: float = 6.0
+"""Decades of bending energy density a log-scale render shows at most."""
+
+
 def scene_up(out: Path) -> str:
     """Return the ``up`` axis of the run in ``out`` (from its summary; "z" without one)."""
     try:
@@ -98,13 +102,17 @@ def colour_values(density: np.ndarray, options: RenderOptions, floor: float) -> 
 def colour_range(frames: Sequence[ShellFrame], options: RenderOptions) -> tuple[float, float]:
     """Return the 2nd and 98th percentile of the shown scalars over all frames.
 
-    In log scale only positive densities count (the rest state has none at all); the
-    lower end is also the floor applied to smaller values.
+    In log scale only positive densities count (the rest state has none at all), and at most
+    :data:`LOG_DECADES` decades below the upper end are shown (round-off-sized densities of a
+    barely deformed region would stretch the map over 20 decades); the lower end is also the
+    floor applied to smaller values.
     """
     values = np.concatenate([f.bending_energy_density for f in frames])
     if options.log_scale:
         values = np.log10(values[values > 0.0]) if np.any(values > 0.0) else np.zeros(1)
     lo, hi = np.percentile(values, [2.0, 98.0])
+    if options.log_scale:
+        lo = max(lo, hi - LOG_DECADES)
     return float(lo), float(max(hi, lo + 1e-12))
 
 

@@ -36,7 +36,7 @@ test-all: $(STAMP)
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check models solvers meshes wrinkles validation tests benchmarks paper
+	$(VENV)/bin/ruff check models solvers meshes wrinkles validation tests benchmarks paper tools
 	$(VENV)/bin/mypy
 
 bench: $(STAMP)

@@ -15,7 +15,7 @@ from typing import Any
 from models.backend import MPI
 from models.coupling import PenaltyCoupling, body_force_function, penalty_force
 from solvers.body import Body
-from solvers.coupling import coupled_frame, relative_change
+from solvers.coupling import coupled_frame, explicit_frame
 from wrinkles.shell_output import Writer
 from wrinkles.shell_setup import Shell
 from wrinkles.shell_stage import StageRecord, shell_record, solve_shell, target
@@ -69,33 +69,29 @@ def feed_back(shell: Shell, body: Body) -> None:
 
 def explicit_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mapping[str, Any]],
                    write: Writer) -> Callable[[int], StageRecord]:
-    """Stage replacing body + shell: the penalty force fed back as a fixed, relaxed load.
-
-    Body steps with the current load, shell solve; then repeatedly: feed the penalty force
-    back (``B^T f``), redo the frame's body steps from the saved state, re-solve the shell,
-    until ``max|u_k - u_{k-1}| <= rtol max|u_k|`` or ``max_iterations``.
-    """
-    opts, comm = shell.options.internals.coupling, body.mesh.comm
+    """Return the stage of the explicit scheme (:func:`solvers.coupling.explicit_frame`)."""
+    options, comm = shell.options.internals.coupling, body.mesh.comm
 
     def stage(frame: int) -> StageRecord:
-        saved, x_start, y_start = body.snapshot(), shell.x.copy(), shell.y.copy()
-        record = dict(body_stage(frame))
-        report = solve_shell(shell, target(shell, body), frame, comm)
-        change, k, repaired = float("inf"), 0, shell.start_repaired
-        for k in range(1, opts.max_iterations + 1):  # noqa: B007  (k is reported)
-            u_old = body.u.x.array.copy()
-            feed_back(shell, body)
-            body.restore(saved)
-            shell.x, shell.y = x_start.copy(), y_start.copy()
-            record = dict(body_stage(frame))
-            change = relative_change(comm, body.u.x.array, u_old)
+        x_start, y_start = shell.x.copy(), shell.y.copy()
+        repaired = 0
+
+        def solve() -> Any:
+            nonlocal repaired
             report = solve_shell(shell, target(shell, body), frame, comm)
             repaired += shell.start_repaired
-            if change <= opts.rtol:
-                break
+            return report
+
+        def reset() -> None:
+            shell.x, shell.y = x_start.copy(), y_start.copy()
+
+        result = explicit_frame(body, options, lambda: body_stage(frame), solve,
+                                lambda: feed_back(shell, body), reset)
         write(frame, body.t)
-        return {**record, **shell_record(shell, report), "shell_start_repaired": repaired,
-                **coupling_record(shell, k, change, opts.rtol, body.applied_load().tolist())}
+        return {**result.record, **shell_record(shell, result.report),
+                "shell_start_repaired": repaired,
+                **coupling_record(shell, result.iterations, result.change, options.rtol,
+                                  body.applied_load().tolist())}
 
     return stage
 

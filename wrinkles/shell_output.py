@@ -43,7 +43,7 @@ from wrinkles.output import (
 from wrinkles.shell_setup import Shell
 
 SHELL_XDMF_NAME = "shell.xdmf"
-FIELD_TYPES: dict[str, str] = {"displacement": "Vector", "bending_energy_density": "Scalar"}
+FIELD_TYPES: dict[str, str] = {"bending_energy_density": "Scalar", "displacement": "Vector"}
 """Point fields of every step and their XDMF attribute type."""
 
 
@@ -145,14 +145,14 @@ class ShellSeries:
         geo = ET.SubElement(grid, "Geometry", GeometryType="XYZ")
         _item(geo, h5, "/Mesh/geometry", (self.n, 3), "Float")
         ET.SubElement(grid, "Time", Value=repr(self.times[index]))
-        cid = ET.SubElement(grid, "Attribute", Name="cluster_id", AttributeType="Scalar",
-                            Center="Node")
-        _item(cid, h5, "/Mesh/cluster_id", (self.n,), "Int")
         source, prefix = self.sources[index]
-        for name, kind in FIELD_TYPES.items():
+        for name, kind in FIELD_TYPES.items():  # the bending energy density first: ParaView
             attr = ET.SubElement(grid, "Attribute", Name=name, AttributeType=kind, Center="Node")
             shape = (self.n, 3) if kind == "Vector" else (self.n,)
             _item(attr, source, f"{prefix}/{name}", shape, "Float")
+        cid = ET.SubElement(grid, "Attribute", Name="cluster_id", AttributeType="Scalar",
+                            Center="Node")  # colours by the first scalar it finds
+        _item(cid, h5, "/Mesh/cluster_id", (self.n,), "Int")
         ET.indent(grid, "  ", level=3)
         return "      " + ET.tostring(grid, encoding="unicode").rstrip() + "\n"
 

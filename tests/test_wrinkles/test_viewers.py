@@ -91,3 +91,13 @@ def test_files_spell_the_xinclude_namespace_libxml2_expands(run):
         text = (run / name).read_text()
         assert "https://www.w3.org/2001/XInclude" not in text
         assert 'xmlns:xi="http://www.w3.org/2001/XInclude"' in text
+
+
+def test_shell_steps_list_the_bending_energy_density_first(run):
+    """ParaView colours a dataset by its first point scalar: the wrinkles, not cluster ids."""
+    import xml.etree.ElementTree as ET
+
+    grids = [g for g in ET.parse(run / "shell.xdmf").getroot().iter("Grid")
+             if g.get("GridType") == "Uniform"]
+    assert grids and all(g.find("Attribute").get("Name") == "bending_energy_density"
+                         for g in grids)

@@ -261,6 +261,11 @@ def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False,
     say(f"body: P{scene.body.degree}, {body.V.dofmap.index_map.size_global * 3} dofs, forms "
         f"compiled" + (f"; pins hold {', '.join(map(str, body.pin_nodes))} nodes"
                        if body.pin_nodes else ""))
+    if scene.body.dynamics == "static" and not scene.body.pins and comm.rank == 0:
+        warnings.warn("body.pins: a static scene without pins has no unique solution (the "
+                      "body's rigid motions are free; frictionless contacts do not hold it): "
+                      "add [[body.pins]] or use body.dynamics = \"implicit_euler\"",
+                      meshes.MeshWarning, stacklevel=2)
     for index, (pin, count) in enumerate(zip(scene.body.pins, body.pin_nodes, strict=True)):
         if count < 3 and comm.rank == 0:
             warnings.warn(f"body.pins[{index}]: holds only {count} node(s) of the mesh (a "

@@ -228,7 +228,7 @@ def apply_up(doc: dict[str, Any], where: str = "<dict>") -> None:
 
     """
     up = doc.get("up", "z")
-    if up not in UP_AXES:
+    if not isinstance(up, str) or up not in UP_AXES:
         raise InputError(f"{where}: up: must be one of 'x', 'y', 'z', got {up!r}")
     e = list(UP_AXES[up])
     body = doc.setdefault("body", {}) if up != "z" or "body" in doc else None

@@ -101,6 +101,8 @@ SCENE_CASES: list[tuple[str, Any, tuple[str, ...]]] = [
     ("shell.solver.options", {"newton.shift.growht": 5}, ("shell.solver.options.newton.shift",
                                                           "growth")),
     ("shell.energy.k_B", -1.0, ("shell.energy.k_B",)),
+    ("up", [], ("up",)),                                             # found by the fuzz test
+    ("up", "w", ("up", "'x', 'y', 'z'")),
 ]
 
 

@@ -166,3 +166,10 @@ def test_a_ball_starting_inside_the_body_is_refused(tmp_path):
                     "--set", ball)
     assert proc.returncode == 1
     assert "rigid.balls[0].center = [1.0, 0.35, 0.3]: inside the body" in proc.stderr
+
+
+def test_a_static_scene_without_pins_is_warned_about(tmp_path):
+    proc = wrinkles("run", str(DROP_BLOCK), "--out", str(tmp_path / "out"), "--frames", "1",
+                    "--set", 'body.dynamics="static"', "--set", "body.dt=0.5")
+    assert "warning: body.pins: a static scene without pins has no unique solution" in proc.stderr
+    assert proc.returncode == 2  # and the solve fails, as the warning says

@@ -5,9 +5,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
-import os
 import re
-import subprocess
 import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -20,6 +18,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from validation.scene_runs import wrinkles_cli
 from wrinkles.output import complete_steps
 
 REPO = Path(__file__).resolve().parents[1]
@@ -32,11 +31,8 @@ EXTERNAL_MESHES = REPO.parent / "shared" / "meshes_external"
 """Meshes written by other projects (``../shared`` beside the checkout; never copied in)."""
 
 
-def wrinkles(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    """Run ``python -m wrinkles ARGS`` in a subprocess (serial, one thread)."""
-    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-    return subprocess.run([sys.executable, "-m", "wrinkles", *args], capture_output=True,
-                          text=True, timeout=timeout, cwd=REPO, env=env)
+wrinkles = wrinkles_cli
+"""Run ``python -m wrinkles ARGS`` in a subprocess (:func:`validation.scene_runs.wrinkles_cli`)."""
 
 
 def progress_lines(stdout: str) -> list[str]:

@@ -32,14 +32,18 @@ COARSE = ("--frames", "2", "--set", "body.dt=0.5", "--set", "shell.subdivision.l
 """Coarse test settings: the full bend / twist in 2 frames, one subdivision level."""
 
 
+def wrinkles_cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
+    """Run ``python -m wrinkles ARGS`` in a subprocess from the repository (serial, 1 thread)."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    return subprocess.run([sys.executable, "-m", "wrinkles", *args], capture_output=True,
+                          text=True, timeout=timeout, cwd=REPO, env=env)
+
+
 def run_scene(scene: str, out: Path, *extra: str,
               timeout: float = 600) -> subprocess.CompletedProcess[str]:
     """Run ``python -m wrinkles run scenes/<scene>.toml --out OUT --overwrite EXTRA`` (serial)."""
-    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-    return subprocess.run([sys.executable, "-m", "wrinkles", "run",
-                           str(REPO / "scenes" / f"{scene}.toml"), "--out", str(out), "--overwrite",
-                           *extra],
-                          capture_output=True, text=True, timeout=timeout, cwd=REPO, env=env)
+    return wrinkles_cli("run", str(REPO / "scenes" / f"{scene}.toml"), "--out", str(out),
+                        "--overwrite", *extra, timeout=timeout)
 
 
 def normal_offsets(out: Path) -> tuple[np.ndarray, np.ndarray]:

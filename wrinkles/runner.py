@@ -54,6 +54,7 @@ from meshes.errors import InputError, SolverError
 from meshes.report import mesh_report
 from meshes.tetmesh import TetMesh
 from models.backend import MPI, dolfinx, mesh_from_arrays
+from models.embedding.embedding import affine_maps, min_barycentric
 from models.rigid import RigidStepInfo
 from solvers.body import Body, StepReport
 from solvers.coupling import BallCoupling
@@ -317,29 +318,23 @@ def stage_logger(log: Callable[[str], None] | None) -> Callable[[str], None]:
 def check_balls_outside(body: Body, scene: Scene) -> None:
     """Refuse a rigid ball whose centre starts inside the body (collective).
 
+    A centre is inside when it lies in an owned cell: its smallest barycentric coordinate in
+    the cell's affine map is >= 0 (:func:`models.embedding.embedding.affine_maps`).
+
     Raises:
         InputError: naming ``rigid.balls[i].center``.
 
     """
     assert scene.rigid is not None
-    centers = np.array([ball.center for ball in scene.rigid.balls], dtype=float)
     mesh = body.mesh
-    cells = mesh.geometry.dofmaps[0][:mesh.topology.index_map(3).size_local]
-    inside = np.array([cells_containing(mesh.geometry.x[cells], c) for c in centers])
-    inside = mesh.comm.allreduce(inside, op=MPI.LOR)
-    for index in np.flatnonzero(inside):
-        raise InputError(f"rigid.balls[{index}].center = {centers[index].tolist()}: inside the "
-                         f"body (a ball must start outside it)")
-
-
-def cells_containing(vertices: np.ndarray, point: np.ndarray, tol: float = 1e-12) -> bool:
-    """Whether ``point`` lies in one of the tets ``vertices`` ((m, 4, 3), affine)."""
-    a = vertices[:, 1:] - vertices[:, :1]
-    b = point - vertices[:, 0]
-    ok = np.abs(np.linalg.det(a)) > 0.0
-    lam = np.linalg.solve(np.transpose(a[ok], (0, 2, 1)), b[ok][..., None])[..., 0]
-    inside = (lam >= -tol).all(axis=1) & (lam.sum(axis=1) <= 1.0 + tol)
-    return bool(inside.any())
+    maps = affine_maps(mesh)
+    owned = np.arange(mesh.topology.index_map(3).size_local)
+    for index, ball in enumerate(scene.rigid.balls):
+        center = np.broadcast_to(np.asarray(ball.center, dtype=float), (owned.size, 3))
+        inside = bool(np.any(min_barycentric(maps.pull_back(owned, center)) >= -1e-12))
+        if mesh.comm.allreduce(inside, op=MPI.LOR):
+            raise InputError(f"rigid.balls[{index}].center = {list(ball.center)}: inside the "
+                             f"body (a ball must start outside it)")
 
 
 def make_body(scene: Scene, mesh: dolfinx.mesh.Mesh) -> Body:

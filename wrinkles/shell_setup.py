@@ -44,7 +44,7 @@ from models.embedding.embedding import (
     build_embedding,
     mesh_surface,
 )
-from models.embedding.subdivision import SubdivisionOptions, subdivide
+from models.embedding.subdivision import Subdivision, SubdivisionOptions, subdivide
 from models.materials import Material
 from models.shell.energy import ShellEnergy, ShellParams
 from models.shell.rest import RestState, vertex_normals
@@ -432,6 +432,14 @@ def check_memory(options: ShellOptions, surface_faces: int, ranks_here: int = 1)
             f"or coarsen the body mesh")
 
 
+def refine(options: ShellOptions, vertices: np.ndarray, faces: np.ndarray
+           ) -> tuple[Subdivision, ShellTopology, float]:
+    """Subdivide the body surface into the shell: ``(subdivision, topology, mean edge)``."""
+    sub = subdivide(vertices, faces, options.internals.subdivision)
+    topology = ShellTopology.from_faces(sub.faces, sub.vertices.shape[0])
+    return sub, topology, mean_edge_length(sub.vertices, topology)
+
+
 def shell_report(options: ShellOptions, material: Material, vertices: np.ndarray,
                  faces: np.ndarray) -> dict[str, Any]:
     """Return the values a run will use for the shell over the body surface.
@@ -441,9 +449,7 @@ def shell_report(options: ShellOptions, material: Material, vertices: np.ndarray
     option. Subdivides the surface (after :func:`check_memory`), builds no clusters.
     """
     check_memory(options, faces.shape[0])
-    sub = subdivide(vertices, faces, options.internals.subdivision)
-    topology = ShellTopology.from_faces(sub.faces, sub.vertices.shape[0])
-    a = mean_edge_length(sub.vertices, topology)
+    sub, _, a = refine(options, vertices, faces)
     params = shell_params(options, a)
     count, spacing, sigma = cluster_sizing(cluster_options(options, material), sub.vertices,
                                            sub.faces)
@@ -499,14 +505,12 @@ def build_shell(body: Body, options: ShellOptions, material: Material,
     local = body.mesh.comm.Split_type(MPI.COMM_TYPE_SHARED)
     check_memory(options, surface.faces.shape[0], local.size)
     local.Free()
-    sub = subdivide(surface.vertices, surface.faces, options.internals.subdivision)
-    topology = ShellTopology.from_faces(sub.faces, sub.vertices.shape[0])
+    sub, topology, a = refine(options, surface.vertices, surface.faces)
     log(f"shell: surface of {surface.faces.shape[0]} triangles subdivided "
         f"{options.subdivision.levels} times: {sub.vertices.shape[0]} vertices")
     emb = build_embedding(body.V, sub.vertices, options.internals.embedding)
     log("shell: embedding B")
     rest = np.ascontiguousarray(sub.vertices)
-    a = mean_edge_length(rest, topology)
     sizing = cluster_options(options, material)
     clusters = build_clusters(rest, sub.faces, sizing)
     log(f"shell: {clusters.H.shape[0]} clusters")

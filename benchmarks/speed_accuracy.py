@@ -104,8 +104,11 @@ QUICK_BASE = ["mesh.params.h=0.05", "time.frames=2", "body.dt=0.5",
 
 REFERENCE = ["body.degree=2", "shell.solver.hessian=\"exact\"",
              "shell.solver.options.newton.far_hessian=\"\"", "shell.solver.rtol=1e-8",
-             "shell.solver.max_iterations=500"]
-"""The reference's settings besides its subdivision level."""
+             "shell.solver.max_iterations=500", "shell.solver.method=\"direct\""]
+"""The reference's settings besides its subdivision level (exact Newton: direct solves)."""
+
+DIRECT = 'shell.solver.method="direct"'
+"""The direct linear solve, for the rows that measure a direct-solver option."""
 
 
 BENDING = "bending_energy_rel_error"
@@ -290,11 +293,12 @@ def other_knobs() -> list[Config]:
     c += [Config("body=P2", "body", ("body.degree=2",))]
     two_way = ('shell.coupling.mode="two_way"', "shell.solver.options.coupling.max_iterations=80")
     c += [Config("two_way", "coupling", two_way),
-          Config("two_way+modified", "coupling", (*two_way, MODIFIED))]
-    return c + [Config("linear=assembled_mumps", "linear",
+          Config("two_way+modified", "coupling", (*two_way, MODIFIED, DIRECT))]
+    return c + [Config("method=direct", "linear", (DIRECT,)),
+                Config("linear=assembled_mumps", "linear",
                        ('shell.solver.options.energy.penalty_hessian="assembled"',
-                        'shell.solver.options.newton.linear.backend="mumps"')),
-                Config("modified", "linear", (MODIFIED,))]
+                        'shell.solver.options.newton.linear.backend="mumps"', DIRECT)),
+                Config("modified", "linear", (MODIFIED, DIRECT))]
 
 
 def combinations(facts: SceneFacts, levels: list[int] | None = None) -> list[Config]:

@@ -24,7 +24,6 @@ import argparse
 import contextlib
 import dataclasses
 import functools
-import os
 import sys
 import time
 import traceback
@@ -259,7 +258,6 @@ def warning_line(message: Warning | str, category: type[Warning], *_: Any, **__:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``wrinkles`` console script; return the exit code."""
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
     warnings.formatwarning = warning_line
     try:
         args = build_parser().parse_args(argv)

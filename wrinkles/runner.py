@@ -107,6 +107,7 @@ class FrameRecord:
         energy: total body energy: kinetic + elastic + gravity + contact [J].
         min_det_f: minimum of det F over the body's quadrature points [-].
         wall_time: wall time of the frame, output included [s].
+        cpu_time: CPU time of this process during the frame, all its threads [s].
         stage_times: wall time per stage [s].
         details: further numbers returned by the stages (energy split, halvings, ...).
 
@@ -118,6 +119,7 @@ class FrameRecord:
     energy: float
     min_det_f: float
     wall_time: float
+    cpu_time: float = 0.0
     stage_times: dict[str, float] = field(default_factory=dict)
     details: dict[str, Any] = field(default_factory=dict)
 
@@ -570,7 +572,7 @@ def output_fields(body: Body) -> dict[str, Any]:
 
 def run_frame(run: Run, frame: int) -> FrameRecord:
     """Run every stage once, then write the frame's output (collective)."""
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     values: dict[str, Any] = {}
     stage_times: dict[str, float] = {}
     for name, stage in run.stages:
@@ -579,17 +581,18 @@ def run_frame(run: Run, frame: int) -> FrameRecord:
         stage_times[name] = time.perf_counter() - t0
     if run.series is not None and run.scene.output.writes_frame(frame, run.n_frames):
         run.series.write(run.body.t)
-    return make_record(frame, values, stage_times, time.perf_counter() - start)
+    return make_record(frame, values, stage_times, time.perf_counter() - start,
+                       time.process_time() - cpu)
 
 
 def make_record(frame: int, values: dict[str, Any], stage_times: dict[str, float],
-                wall: float) -> FrameRecord:
+                wall: float, cpu: float = 0.0) -> FrameRecord:
     """Split stage values into the record's main fields and its details."""
     main = {f.name for f in dataclasses.fields(FrameRecord)}
     details = {k: v for k, v in values.items() if k not in main}
     core = {k: v for k, v in values.items() if k in main}
-    return FrameRecord(frame=frame, wall_time=wall, stage_times=stage_times, details=details,
-                       **core)
+    return FrameRecord(frame=frame, wall_time=wall, cpu_time=cpu, stage_times=stage_times,
+                       details=details, **core)
 
 
 def write_summary(run: Run) -> None:

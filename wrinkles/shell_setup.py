@@ -54,6 +54,7 @@ from solvers.body import Body
 from solvers.coupling import CouplingOptions
 from solvers.multigrid import ShellHierarchy
 from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver
+from solvers.solver_choice import choose_linear_method, choose_threads
 from wrinkles.config import expert, flatten, to_dict, unflatten
 
 
@@ -175,39 +176,39 @@ class CouplingKeys:
     mode: Literal["one_way", "two_way"] = "one_way"
 
 
-SOLVER_METHODS: tuple[str, ...] = ("direct", "multigrid")
-
-
 @dataclass(frozen=True)
 class SolverKeys:
     """``[shell.solver]``: how the shell is solved: a few named choices and an expert mapping.
 
     Attributes:
-        method: linear solves of the Newton steps: "direct" (sparse LDL^T) or "multigrid" (CG
-            with geometric multigrid on the subdivision hierarchy).
+        method: linear solves of the Newton steps: "auto" (by the shell's size,
+            :func:`solvers.solver_choice.choose_linear_method`), "direct" (sparse LDL^T) or
+            "multigrid" (CG with geometric multigrid on the subdivision hierarchy).
         hessian: "exact", "gauss_newton" or "projected" (:mod:`models.shell.assembly`).
         rtol: relative gradient tolerance of each frame's Newton solve.
         max_iterations: Newton iterations per frame.
-        threads: threads of the element kernels and multigrid products (1 under MPI).
+        threads: threads of the element kernels and multigrid products; 0 = the cores of a
+            serial run, 1 per rank under MPI (:func:`solvers.solver_choice.choose_threads`).
         options: expert mapping of dotted paths into :class:`ShellInternals` (``"newton.shift.
             growth" = 5``, ``"energy.k_F" = 0``, ``"coupling.scheme" = "explicit"``), checked
             like any key; ``wrinkles check`` prints the resolved values.
 
     """
 
-    method: Literal["direct", "multigrid"] = "direct"
+    method: Literal["auto", "direct", "multigrid"] = "auto"
     hessian: Literal["exact", "gauss_newton", "projected"] = "exact"
     rtol: float = 1e-8
     max_iterations: int = 200
-    threads: int = 1
+    threads: int = 0
     options: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "options", flatten(unflatten(self.options, "solver.options")))
         _positive(self, ("rtol",), "solver")
-        for name in ("max_iterations", "threads"):
-            if getattr(self, name) < 1:
-                raise InputError(f"solver.{name}: must be >= 1, got {getattr(self, name)}")
+        if self.max_iterations < 1:
+            raise InputError(f"solver.max_iterations: must be >= 1, got {self.max_iterations}")
+        if self.threads < 0:
+            raise InputError(f"solver.threads: must be 0 (auto) or >= 1, got {self.threads}")
 
 
 @dataclass(frozen=True)
@@ -234,9 +235,20 @@ class ShellInternals:
     coupling: CouplingOptions = field(default_factory=CouplingOptions)
 
 
-SCENE_DEFAULTS: dict[str, Any] = {"energy.penalty_hessian": "low_rank"}
+SCENE_DEFAULTS: dict[str, Any] = {
+    "energy.penalty_hessian": "low_rank",
+    "newton.multigrid.forcing": "eisenstat_walker",
+    "newton.multigrid.rtol": 1e-4,
+    "newton.multigrid.level_format": "sbaij",
+    "newton.multigrid.eigen_estimate": "solve",
+    "newton.multigrid.fallback": False,
+    "newton.multigrid.phase_space": True,
+}
 """Internal values a scene starts from where they differ from the dataclass defaults (an
-expert key may change them): the low-rank penalty, since ``H^T H`` fills in at large sizes."""
+expert key may change them): the low-rank penalty, since ``H^T H`` fills in at large sizes;
+the multigrid-CG settings measured fastest on the product's frames (inexact Newton with
+Eisenstat-Walker forcing down to 1e-4, symmetric block level matrices, Chebyshev bounds once
+per solve, no direct fallback, the wrinkle-phase coarse space; docs/notes/solver-choice.md)."""
 
 
 @dataclass(frozen=True)
@@ -288,15 +300,32 @@ class ShellOptions:
             "subdivision.levels": self.subdivision.levels,
             "subdivision.scheme": self.subdivision.scheme,
             "coupling.mode": self.coupling.mode,
-            "energy.hessian_mode": solver.hessian, "energy.threads": solver.threads,
-            "newton.rtol": solver.rtol, "newton.max_iterations": solver.max_iterations,
-            "newton.linear_method": solver.method, "newton.multigrid.threads": solver.threads}
+            "energy.hessian_mode": solver.hessian,
+            "newton.rtol": solver.rtol, "newton.max_iterations": solver.max_iterations}
+        if solver.method != "auto":  # resolved by resolve_solver once the size is known
+            keys["newton.linear_method"] = solver.method
+        if solver.threads:
+            keys["energy.threads"] = keys["newton.multigrid.threads"] = solver.threads
         for table, prefix in ((self.clusters, "clusters"), (self.energy, "energy")):
             for f in dataclasses.fields(table):
                 value = getattr(table, f.name)
                 if value is not None:
                     keys[f"{prefix}.{f.name}"] = value
         return keys
+
+
+def resolve_solver(options: ShellOptions, vertices: int, ranks: int) -> ShellOptions:
+    """Return ``options`` with ``solver.method`` and ``solver.threads`` made concrete.
+
+    "auto" becomes the method for a shell of ``vertices`` vertices and its subdivision levels,
+    threads 0 the cores of a serial run or 1 per rank (:mod:`solvers.solver_choice`); the
+    internal options are rebuilt from them, so every later reader sees the choice.
+    """
+    solver = dataclasses.replace(options.solver,
+                                 method=choose_linear_method(options.solver.method, vertices,
+                                                             options.subdivision.levels),
+                                 threads=choose_threads(options.solver.threads, ranks))
+    return options if solver == options.solver else dataclasses.replace(options, solver=solver)
 
 
 def mean_edge_length(x: np.ndarray, topology: ShellTopology) -> float:
@@ -421,7 +450,7 @@ def check_memory(options: ShellOptions, surface_faces: int, ranks_here: int = 1)
     """
     levels = options.subdivision.levels
     n = shell_vertices(surface_faces, levels)
-    method = options.solver.method
+    method = choose_linear_method(options.solver.method, n, levels)
     need = BYTES_PER_VERTEX[method] * n * ranks_here
     have = available_memory()
     if need > 0.9 * have:
@@ -441,21 +470,24 @@ def refine(options: ShellOptions, vertices: np.ndarray, faces: np.ndarray
 
 
 def shell_report(options: ShellOptions, material: Material, vertices: np.ndarray,
-                 faces: np.ndarray) -> dict[str, Any]:
+                 faces: np.ndarray, ranks: int = 1) -> dict[str, Any]:
     """Return the values a run will use for the shell over the body surface.
 
     What ``wrinkles check`` prints: the shell's size, mean edge length and memory estimate,
-    the stiffnesses (from the skin when there is one), the cluster sizing and every internal
-    option. Subdivides the surface (after :func:`check_memory`), builds no clusters.
+    the stiffnesses (from the skin when there is one), the cluster sizing, the linear method
+    and threads chosen for ``ranks`` ranks, and every internal option. Subdivides the surface
+    (after :func:`check_memory`), builds no clusters.
     """
     check_memory(options, faces.shape[0])
     sub, _, a = refine(options, vertices, faces)
+    options = resolve_solver(options, sub.vertices.shape[0], ranks)
     params = shell_params(options, a)
     count, spacing, sigma = cluster_sizing(cluster_options(options, material), sub.vertices,
                                            sub.faces)
     n = sub.vertices.shape[0]
     return {"vertices": n, "faces": int(sub.faces.shape[0]), "mean_edge_length": a,
             "memory_estimate_gib": BYTES_PER_VERTEX[options.solver.method] * n / 2**30,
+            "solver": {"method": options.solver.method, "threads": options.solver.threads},
             "k_L": params.k_L, "k_A": params.k_A, "k_B": params.k_B, "k_P": params.k_P,
             "k_F": params.k_F,
             "clusters": {"count": count, "spacing": spacing, "sigma": sigma},
@@ -506,6 +538,7 @@ def build_shell(body: Body, options: ShellOptions, material: Material,
     check_memory(options, surface.faces.shape[0], local.size)
     local.Free()
     sub, topology, a = refine(options, surface.vertices, surface.faces)
+    options = resolve_solver(options, sub.vertices.shape[0], body.mesh.comm.size)
     log(f"shell: surface of {surface.faces.shape[0]} triangles subdivided "
         f"{options.subdivision.levels} times: {sub.vertices.shape[0]} vertices")
     emb = build_embedding(body.V, sub.vertices, options.internals.embedding)
@@ -526,10 +559,13 @@ def build_shell(body: Body, options: ShellOptions, material: Material,
     energy = ShellEnergy(topology, rest_state, params, clusters.H)
     solver = ShellNewtonSolver(energy, options.internals.newton,  # type: ignore[arg-type]
                                hierarchy=ShellHierarchy(sub))
-    log("shell: energy and solver")
+    log(f"shell: energy and solver ({options.solver.method}, {options.solver.threads} "
+        f"thread(s))")
     facts = {"vertices": int(rest.shape[0]), "faces": int(sub.faces.shape[0]),
              "coarse_surface_vertices": int(surface.vertices.shape[0]),
-             "mean_edge_length": a, "k_L": params.k_L, "k_A": params.k_A,
+             "mean_edge_length": a, "solver": {"method": options.solver.method,
+                                               "threads": options.solver.threads},
+             "k_L": params.k_L, "k_A": params.k_A,
              "k_B": params.k_B, "k_P": params.k_P,
              "clusters": dataclasses.asdict(clusters.report),
              "embedding": dataclasses.asdict(emb.report),

@@ -96,7 +96,7 @@ SCENE_CASES: list[tuple[str, Any, tuple[str, ...]]] = [
     ("mesh.builder", "teapot", ("mesh.builder",)),
     ("mesh.params", {"lx": 0.1, "radius": 2.0}, ("radius",)),
     ("mesh.params", {"lx": "wide", "ly": 0.1, "lz": 0.1, "h": 0.05}, ("lx",)),
-    ("shell.solver.threads", 0, ("shell.solver.threads",)),
+    ("shell.solver.threads", -1, ("shell.solver.threads",)),
     ("shell.solver.threads", 1.5, ("shell.solver.threads",)),
     ("shell.solver.options", {"newton.shift.growht": 5}, ("shell.solver.options.newton.shift",
                                                           "growth")),

@@ -1,0 +1,180 @@
+"""Frames of ``wrinkles run`` as a user runs them: this tree against an earlier commit, one run.
+
+For each scene the command ``wrinkles run SCENE --out TMP --overwrite --set output.render=false
+[--frames N] [--set ...]`` is run in a subprocess, once with this tree and, with ``--before
+REV``, once with a detached git worktree of ``REV`` (its packages first on ``PYTHONPATH``, the
+same interpreter and venv), alternating per scene so both see the same machine load. From each
+run's ``summary.json`` the table reports per scene and code:
+
+* frames, shell Newton iterations, factorisations (numeric, shifted retries included) and the
+  failed ones (attempts beyond one per iteration that factorised), shell set-up method and
+  threads when the code records them;
+* the frames' time: process CPU time of the frames (``cpu_time`` of each frame record; for
+  code that does not record it, the frames' wall time, marked ``*``: a serial, one-thread run
+  on an idle core has CPU = wall) and wall time, and seconds per frame;
+* the process's total user + system CPU (``resource.getrusage`` of the child: set-up, JIT and
+  output included);
+* the final shell energy and the frames whose shell solve did not converge.
+
+Writes ``benchmarks/results/product_frames.json`` (``--out``). Timings on a shared machine are
+contended; the load average is recorded before and after every run.
+
+Usage::
+
+    python benchmarks/product_frames.py --before 17b4608
+    python benchmarks/product_frames.py --scenes default ball_sofa_coarse --before HEAD~1
+    python benchmarks/product_frames.py --scenes default --frames 1 \\
+        --set shell.subdivision.levels=4 --before 17b4608
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "benchmarks" / "results" / "product_frames.json"
+SCENES: tuple[str, ...] = ("default", "ball_sofa_coarse")
+
+
+def scene_path(name: str) -> Path:
+    """``scenes/<name>.toml`` of this repository, or ``name`` itself when it is a file."""
+    path = Path(name)
+    return path if path.suffix == ".toml" else REPO / "scenes" / f"{name}.toml"
+
+
+def worktree(rev: str, where: Path) -> Path:
+    """Check out ``rev`` into a detached worktree under ``where``; return its path."""
+    path = where / f"before-{rev.replace('/', '_')}"
+    subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", "--force", str(path),
+                    rev], check=True, capture_output=True, text=True)
+    return path
+
+
+def drop_worktree(path: Path) -> None:
+    """Remove a worktree made by :func:`worktree`."""
+    subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(path)],
+                   check=False, capture_output=True)
+
+
+def run_cli(code: Path, scene: Path, out: Path, frames: int | None,
+            overrides: list[str], timeout: float) -> dict[str, Any]:
+    """Run the CLI of the tree ``code`` on ``scene``; return the row of that run."""
+    cmd = [sys.executable, "-m", "wrinkles", "run", str(scene), "--out", str(out),
+           "--overwrite", "--set", "output.render=false"]
+    cmd += ["--frames", str(frames)] if frames else []
+    for item in overrides:
+        cmd += ["--set", item]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(code), os.environ.get(
+        "PYTHONPATH", "")]).rstrip(os.pathsep))
+    load = os.getloadavg()[0]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    start = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=code, env=env, capture_output=True, text=True,
+                          timeout=timeout)
+    wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    row: dict[str, Any] = {
+        "exit": proc.returncode, "process_wall": wall,
+        "process_cpu": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
+        "load_before": load, "load_after": os.getloadavg()[0]}
+    if proc.returncode != 0:
+        row["error"] = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
+        return row
+    return row | summary_row(json.loads((out / "summary.json").read_text()))
+
+
+def summary_row(summary: dict[str, Any]) -> dict[str, Any]:
+    """Frames, iterations, factorisations and times of one run's ``summary.json``."""
+    frames = summary["frames"]
+    details = [f.get("details", {}) for f in frames]
+    its = [int(d.get("shell_iterations", 0)) for d in details]
+    facts = [int(d.get("shell_factorizations", 0)) for d in details]
+    has_cpu = all("cpu_time" in f for f in frames)
+    solver = summary.get("run", {}).get("shell", {}).get("solver", {})
+    return {
+        "frames": len(frames), "shell_iterations": its, "factorizations": facts,
+        "failed_factorizations": [max(0, n - i) for n, i in zip(facts, its, strict=True)],
+        "frames_cpu": sum(f["cpu_time"] for f in frames) if has_cpu else None,
+        "frames_wall": sum(f["wall_time"] for f in frames),
+        "shell_energy": [d.get("shell_energy") for d in details],
+        "unconverged": [f["frame"] for f, d in zip(frames, details, strict=True)
+                        if d.get("shell_converged") is False],
+        "method": solver.get("method", "direct"), "threads": solver.get("threads", 1)}
+
+
+def print_row(scene: str, label: str, r: dict[str, Any]) -> None:
+    """One line of the table."""
+    if r["exit"] != 0:
+        print(f"{scene:>18} {label:>8}  FAILED (exit {r['exit']}): {' '.join(r['error'])}")
+        return
+    n = max(r["frames"], 1)
+    cpu = r["frames_cpu"]
+    shown, mark = (cpu, " ") if cpu is not None else (r["frames_wall"], "*")
+    failed, total = sum(r["failed_factorizations"]), sum(r["factorizations"])
+    print(f"{scene:>18} {label:>8} {r['method']:>9} {r['threads']:>3} {r['frames']:>3} "
+          f"{sum(r['shell_iterations']):>6} {total:>6} {failed:>6} {shown:9.2f}{mark} "
+          f"{shown / n:8.2f} {r['frames_wall']:8.2f} {r['process_cpu']:8.2f} "
+          f"{(r['shell_energy'] or [float('nan')])[-1]:12.6e} {r['unconverged'] or ''}",
+          flush=True)
+
+
+HEADER = (f"{'scene':>18} {'code':>8} {'method':>9} {'thr':>3} {'frm':>3} {'its':>6} "
+          f"{'facts':>6} {'failed':>6} {'frames s':>10} {'s/frame':>8} {'wall s':>8} "
+          f"{'proc CPU':>8} {'final W':>12} unconverged")
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """Command line."""
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scenes", nargs="+", default=list(SCENES),
+                   help="scene names under scenes/ or .toml paths")
+    p.add_argument("--before", default=None, help="git revision to compare with")
+    p.add_argument("--frames", type=int, default=None, help="frames per run (scene's own)")
+    p.add_argument("--set", dest="overrides", action="append", default=[],
+                   metavar="KEY=VALUE", help="scene override for both codes (repeatable)")
+    p.add_argument("--timeout", type=float, default=3600.0, help="seconds per run")
+    p.add_argument("--out", type=Path, default=RESULTS)
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """Run the table; return (and write) the JSON document."""
+    args = parse_args(argv)
+    tmp = Path(tempfile.mkdtemp(prefix="product_frames_"))
+    codes: list[tuple[str, Path]] = [("this", REPO)]
+    if args.before:
+        codes.append((args.before, worktree(args.before, tmp)))
+    doc: dict[str, Any] = {"machine": platform.node(), "cores": os.cpu_count(),
+                           "before": args.before, "frames": args.frames,
+                           "overrides": args.overrides, "rows": []}
+    print(HEADER)
+    try:
+        for scene in args.scenes:
+            for label, code in codes:
+                row = run_cli(code, scene_path(scene), tmp / "out", args.frames,
+                              args.overrides, args.timeout)
+                row.update(scene=scene, code=label)
+                doc["rows"].append(row)
+                print_row(scene, label, row)
+                args.out.parent.mkdir(parents=True, exist_ok=True)
+                args.out.write_text(json.dumps(doc, indent=1))
+    finally:
+        for _label, code in codes[1:]:
+            drop_worktree(code)
+        shutil.rmtree(tmp, ignore_errors=True)
+    return doc
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,84 @@
+"""The shell Newton's linear solver and thread count when a scene leaves them to the code.
+
+Two choices, both by what the run is, not by flags:
+
+* **Linear method by size and structure.** The Newton system is solved by CG with geometric
+  multigrid on the subdivision hierarchy (:mod:`solvers.multigrid`) when the shell has at
+  least :data:`MULTIGRID_FROM_VERTICES` vertices and at least :data:`MULTIGRID_FROM_LEVELS`
+  subdivision levels above the body's surface (the coarse solve then has 1/16 of the unknowns
+  or fewer); otherwise it is factorised (sparse LDL^T, :mod:`solvers.linear`). Both bounds are
+  measured on ``wrinkles run`` (docs/notes/solver-choice.md).
+* **Threads by cores.** A serial run uses the cores this process may run on (its CPU
+  affinity, which batch systems and ``taskset`` set); under MPI every rank keeps one (one
+  core per rank).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Literal
+
+from meshes.errors import InputError
+
+ConcreteMethod = Literal["direct", "multigrid"]
+
+LINEAR_METHODS: tuple[str, ...] = ("auto", "direct", "multigrid")
+"""``[shell.solver] method`` values; "auto" is resolved by :func:`choose_linear_method`."""
+
+MULTIGRID_FROM_VERTICES: int = 2000
+"""Shell vertex count from which "auto" may select multigrid-CG instead of the direct solve."""
+
+MULTIGRID_FROM_LEVELS: int = 2
+"""Subdivision levels from which "auto" may select multigrid-CG (one level leaves a coarse
+problem of a quarter of the unknowns: slower than the direct solve)."""
+
+
+def choose_linear_method(method: str, vertices: int, levels: int) -> ConcreteMethod:
+    """Return the concrete linear method: ``method`` itself, or for "auto" the one that pays.
+
+    Args:
+        method: "auto", "direct" or "multigrid".
+        vertices: shell vertex count (>= 0).
+        levels: subdivision levels of the shell above the body's surface (>= 0).
+
+    Returns:
+        For "auto": "multigrid" when ``vertices >= MULTIGRID_FROM_VERTICES`` and ``levels >=
+        MULTIGRID_FROM_LEVELS``, else "direct".
+
+    Raises:
+        InputError: ``method`` is not one of :data:`LINEAR_METHODS`.
+
+    """
+    if method not in LINEAR_METHODS:
+        raise InputError(f"shell.solver.method: expected one of {list(LINEAR_METHODS)}, got "
+                         f"{method!r}")
+    if method == "auto":
+        pays = vertices >= MULTIGRID_FROM_VERTICES and levels >= MULTIGRID_FROM_LEVELS
+        return "multigrid" if pays else "direct"
+    return "direct" if method == "direct" else "multigrid"
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity; else ``os.cpu_count()``; >= 1)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # platforms without affinity masks
+        return max(1, os.cpu_count() or 1)
+
+
+def choose_threads(threads: int, ranks: int) -> int:
+    """Return the thread count of the shell's kernels and multigrid products.
+
+    ``threads`` when >= 1; for 0 ("auto") the available cores of a serial run
+    (:func:`available_cores`), 1 per rank under MPI.
+
+    Raises:
+        InputError: ``threads`` < 0.
+
+    """
+    if threads < 0:
+        raise InputError(f"shell.solver.threads: expected 0 (auto) or a count >= 1, got "
+                         f"{threads!r}")
+    if threads:
+        return threads
+    return available_cores() if ranks == 1 else 1

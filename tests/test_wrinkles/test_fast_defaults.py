@@ -1,0 +1,78 @@
+"""The default scene, solved the way the code chooses (no solver keys), keeps its minimisers.
+
+``scenes/default.toml`` has 2 610 shell vertices, so ``shell.solver.method = "auto"`` takes
+multigrid-CG with inexact Newton steps (:mod:`solvers.solver_choice`). Its wrinkled minimisers
+must be of the quality the exact Newton of the direct solve reached: every frame converged,
+shell energies within the spread measured between solver paths, the frame-1 wavelength within
+5 % of the direct solve's and of the Cao & Hutchinson / Remillard & Kry theory.
+"""
+
+from __future__ import annotations
+
+import pytest
+from support import REPO
+
+from models.backend import MPI
+from models.embedding.clusters import wrinkle_wavelength
+from validation.measure import normal_heights, shell_wavelength
+from wrinkles.runner import Run, prepare, run_frame
+from wrinkles.scene import load_scene
+
+DIRECT_ENERGIES: tuple[float, ...] = (0.079408, 0.227356, 0.391648, 0.577021)
+"""Shell energy [J] per frame with ``shell.solver.method = "direct"`` (exact Newton, the
+previous default; ``python -m wrinkles run scenes/default.toml --set
+shell.solver.method=direct``, ``shell_energy`` of summary.json)."""
+ENERGY_SPREAD: float = 0.03
+"""Relative spread of the frame energies between solver paths that all converge (direct,
+multigrid with and without the phase space, fixed or inexact forcing, PSD Hessian far from
+the minimum: frame 1 0.0786-0.0797, frame 4 0.5625-0.5770; docs/notes/solver-choice.md)."""
+DIRECT_WAVELENGTH: float = 0.02107
+"""Frame-1 dominant wrinkle wavelength [m] of the direct solve (lateral faces, x axis)."""
+
+
+def wavelength(run: Run) -> float:
+    """Dominant wavelength of the shell's normal heights on the bar's lateral faces [m]."""
+    shell = run.shell
+    assert shell is not None
+    a = shell.edge_length
+    heights = normal_heights(shell.x, shell.y, shell.topology.faces)
+    return shell_wavelength(shell.rest, shell.topology.faces, heights, axis=0,
+                            margin=1.5 * a, line_width=2.0 * a).wavelength
+
+
+@pytest.fixture(scope="module")
+def default_run(tmp_path_factory) -> tuple[Run, list[float]]:
+    """The default scene's four frames as ``wrinkles run`` takes them; frame-1 wavelength."""
+    scene = load_scene(REPO / "scenes" / "default.toml",
+                       ["output.render=false", "output.xdmf=false"])
+    run = prepare(scene, tmp_path_factory.mktemp("default") / "out", MPI.COMM_SELF)
+    lengths = []
+    for frame in range(1, run.n_frames + 1):
+        run.records.append(run_frame(run, frame))
+        lengths.append(wavelength(run))
+    return run, lengths
+
+
+def test_the_default_scene_gets_multigrid_by_size(default_run):
+    run, _ = default_run
+    assert run.facts["shell"]["vertices"] == 2610
+    assert run.facts["shell"]["solver"]["method"] == "multigrid"
+
+
+def test_every_frame_converges_within_the_spread_of_the_direct_minimisers(default_run):
+    run, _ = default_run
+    energies = [r.details["shell_energy"] for r in run.records]
+    print("shell energies", energies, "direct", DIRECT_ENERGIES,
+          "iterations", [r.details["shell_iterations"] for r in run.records])
+    assert all(r.details["shell_converged"] for r in run.records)
+    assert energies == pytest.approx(DIRECT_ENERGIES, rel=ENERGY_SPREAD)
+
+
+def test_frame_one_wavelength_matches_the_direct_solve_and_theory(default_run):
+    run, lengths = default_run
+    skin, material = run.scene.shell.skin, run.scene.material
+    theory = wrinkle_wavelength(skin.thickness, skin.E, skin.nu, material.E, material.nu)
+    print(f"frame-1 wavelength {lengths[0]:.5f} m, direct {DIRECT_WAVELENGTH:.5f} m, theory "
+          f"{theory:.5f} m; frames {[round(w, 5) for w in lengths]}")
+    assert lengths[0] == pytest.approx(DIRECT_WAVELENGTH, rel=0.05)
+    assert lengths[0] == pytest.approx(theory, rel=0.05)

@@ -8,9 +8,11 @@ Two choices, both by what the run is, not by flags:
   subdivision levels above the body's surface (the coarse solve then has 1/16 of the unknowns
   or fewer); otherwise it is factorised (sparse LDL^T, :mod:`solvers.linear`). Both bounds are
   measured on ``wrinkles run`` (docs/notes/solver-choice.md).
-* **Threads by cores.** A serial run uses the cores this process may run on (its CPU
-  affinity, which batch systems and ``taskset`` set); under MPI every rank keeps one (one
-  core per rank).
+* **Threads by cores and size.** A serial run of a shell of at least
+  :data:`THREADS_FROM_VERTICES` vertices uses the cores this process may run on (its CPU
+  affinity, which batch systems and ``taskset`` set); a smaller shell keeps one thread (the
+  threads' work is too small to shorten the frame, their CPU time is paid), and so does every
+  rank under MPI (one core per rank).
 """
 
 from __future__ import annotations
@@ -58,6 +60,10 @@ def choose_linear_method(method: str, vertices: int, levels: int) -> ConcreteMet
     return "direct" if method == "direct" else "multigrid"
 
 
+THREADS_FROM_VERTICES: int = 5000
+"""Shell vertex count from which "auto" threads use every available core of a serial run."""
+
+
 def available_cores() -> int:
     """Cores this process may run on (its CPU affinity; else ``os.cpu_count()``; >= 1)."""
     try:
@@ -66,11 +72,12 @@ def available_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def choose_threads(threads: int, ranks: int) -> int:
+def choose_threads(threads: int, ranks: int, vertices: int) -> int:
     """Return the thread count of the shell's kernels and multigrid products.
 
-    ``threads`` when >= 1; for 0 ("auto") the available cores of a serial run
-    (:func:`available_cores`), 1 per rank under MPI.
+    ``threads`` when >= 1; for 0 ("auto") the available cores (:func:`available_cores`) of a
+    serial run of a shell of at least :data:`THREADS_FROM_VERTICES` vertices, else 1 (smaller
+    shells, every rank under MPI).
 
     Raises:
         InputError: ``threads`` < 0.
@@ -81,4 +88,4 @@ def choose_threads(threads: int, ranks: int) -> int:
                          f"{threads!r}")
     if threads:
         return threads
-    return available_cores() if ranks == 1 else 1
+    return available_cores() if ranks == 1 and vertices >= THREADS_FROM_VERTICES else 1

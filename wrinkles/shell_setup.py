@@ -188,7 +188,7 @@ class SolverKeys:
         rtol: relative gradient tolerance of each frame's Newton solve.
         max_iterations: Newton iterations per frame.
         threads: threads of the element kernels and multigrid products; 0 = the cores of a
-            serial run, 1 per rank under MPI (:func:`solvers.solver_choice.choose_threads`).
+            serial run of a large shell, else 1 (:func:`solvers.solver_choice.choose_threads`).
         options: expert mapping of dotted paths into :class:`ShellInternals` (``"newton.shift.
             growth" = 5``, ``"energy.k_F" = 0``, ``"coupling.scheme" = "explicit"``), checked
             like any key; ``wrinkles check`` prints the resolved values.
@@ -318,13 +318,14 @@ def resolve_solver(options: ShellOptions, vertices: int, ranks: int) -> ShellOpt
     """Return ``options`` with ``solver.method`` and ``solver.threads`` made concrete.
 
     "auto" becomes the method for a shell of ``vertices`` vertices and its subdivision levels,
-    threads 0 the cores of a serial run or 1 per rank (:mod:`solvers.solver_choice`); the
+    threads 0 the count for that size and ``ranks`` (:mod:`solvers.solver_choice`); the
     internal options are rebuilt from them, so every later reader sees the choice.
     """
     solver = dataclasses.replace(options.solver,
                                  method=choose_linear_method(options.solver.method, vertices,
                                                              options.subdivision.levels),
-                                 threads=choose_threads(options.solver.threads, ranks))
+                                 threads=choose_threads(options.solver.threads, ranks,
+                                                        vertices))
     return options if solver == options.solver else dataclasses.replace(options, solver=solver)
 
 

@@ -9,6 +9,7 @@ from solvers import solver_choice
 from solvers.solver_choice import (
     MULTIGRID_FROM_LEVELS,
     MULTIGRID_FROM_VERTICES,
+    THREADS_FROM_VERTICES,
     choose_linear_method,
     choose_threads,
 )
@@ -41,12 +42,14 @@ def test_an_unknown_method_is_refused_by_its_key():
         choose_linear_method("cholmod", 100, 2)
 
 
-def test_auto_threads_are_the_cores_serially_and_one_per_rank(monkeypatch):
+def test_auto_threads_are_the_cores_of_a_large_serial_shell_else_one(monkeypatch):
     monkeypatch.setattr(solver_choice, "available_cores", lambda: 6)
-    assert choose_threads(0, ranks=1) == 6
-    assert choose_threads(0, ranks=2) == 1
-    assert choose_threads(3, ranks=1) == 3
-    assert choose_threads(3, ranks=4) == 3  # a count written by the user is kept
+    big, small = THREADS_FROM_VERTICES, THREADS_FROM_VERTICES - 1
+    assert choose_threads(0, ranks=1, vertices=big) == 6
+    assert choose_threads(0, ranks=1, vertices=small) == 1
+    assert choose_threads(0, ranks=2, vertices=big) == 1
+    assert choose_threads(3, ranks=1, vertices=small) == 3
+    assert choose_threads(3, ranks=4, vertices=big) == 3  # a count written by the user is kept
 
 
 def test_available_cores_follows_the_affinity_mask(monkeypatch):
@@ -56,4 +59,4 @@ def test_available_cores_follows_the_affinity_mask(monkeypatch):
 
 def test_negative_threads_are_refused():
     with pytest.raises(InputError, match="shell.solver.threads"):
-        choose_threads(-1, ranks=1)
+        choose_threads(-1, ranks=1, vertices=10**5)

@@ -36,6 +36,7 @@ gradient norm converges quadratically, ``||g_{k+1}|| <= C ||g_k||^2``.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -46,6 +47,7 @@ from meshes.errors import InputError, SolverError
 from models.shell.assembly import HESSIAN_MODES
 from models.shell.hinge_angle import hinge_angles
 from models.shell.rest import face_quality
+from solvers.inertia_shift import is_isolated, lowest_ritz_value, restart_shifts
 from solvers.linear import (
     AugmentedPenaltySolver,
     FactorReport,
@@ -536,6 +538,7 @@ class ShellNewtonSolver:
         self._refresh = True  # the next iteration must factorise (modified Newton)
         self._mode_now = ""
         self._target = 0.0  # gradient tolerance of the running solve (multigrid forcing)
+        self._restartable = False  # the ladder may restart from a Lanczos estimate
 
     def _reuse_next(self) -> bool:
         """Whether the next iteration will try the previous factorisation (modified Newton)."""
@@ -583,6 +586,7 @@ class ShellNewtonSolver:
             if len(history) >= self.options.max_iterations:
                 return x.reshape(-1, 3), self._report(False, "max_iterations", ev, tol,
                                                       history, timers)
+            self._restartable = self.krylov is None and not history  # solvers.inertia_shift
             step = self._iterate(x, ev, timers, near=_grad_norm(ev) <= switch)
             if step is None:
                 report = self._report(False, "no descent step after all shifts", ev, tol,
@@ -688,13 +692,38 @@ class ShellNewtonSolver:
 
         reports = factorize_with_shift(factorize, scale, self.options.shift,
                                        self._last_shift / self.options.shift_decay,
-                                       accept, zero_first=near or None)
+                                       accept, zero_first=near or None,
+                                       restart=self._restart(ev) if self._restartable else None)
         if not found:
             self._factor_age = 0
             return None
         self._last_shift, self._factor_age = taus[-1], 1
         return self._step(x, ev, found[0], taus[-1], len(reports),
                           reports[0].negative_pivots, cg_before)
+
+    def _restart(self, ev: EnergyEval) -> Callable[[FactorReport], list[float]]:
+        """Shifts from the Lanczos estimate of the full Hessian's smallest eigenvalue.
+
+        Used at the first iteration of a solve on the direct path, for a factorisation with a
+        few extra negative pivots (:mod:`solvers.inertia_shift`); the full Hessian is ``A +
+        G^T G`` when the penalty comes as the factor G.
+        """
+        hess, g = ev.hess, ev.penalty_factor
+        assert hess is not None  # order-2 evaluation
+
+        def product(v: np.ndarray) -> np.ndarray:
+            out = hess @ v
+            return out + g.T @ (g @ v) if g is not None else out
+
+        shift = self.options.shift
+
+        def restart(report: FactorReport) -> list[float]:
+            if not is_isolated(report.negative_pivots, report.expected_negative):
+                return []
+            return restart_shifts(lowest_ritz_value(product, hess.shape[0]), shift.growth,
+                                  shift.max_shifts)
+
+        return restart
 
     def _direction(self, x: np.ndarray, ev: EnergyEval, timers: _Timers) -> _Direction | None:
         """Solve with the current factorisation; descent test and line search."""

@@ -1,0 +1,90 @@
+"""Where the shift ladder of a warm-started solve should start when its start is indefinite.
+
+The shifted Newton factorises ``A + tau I`` for ``tau = tau_start growth^j`` until the LDL^T
+has no negative pivot beyond the expected ones (Nocedal & Wright, Numerical Optimization, 2nd
+ed., Alg. 3.3). A solve starts at ``tau = 0`` and climbs from ``tau_0 = 1e-6 mean|diag A|``,
+so a few strongly negative eigenvalues cost one failed factorisation per rung: a matrix whose
+smallest eigenvalue is ``lambda_min < 0`` needs about ``log_growth(|lambda_min| / tau_0)`` of
+them (eight to ten on a stencil folded by the body's motion between frames). When the first
+factorisation of a solve has a few negative pivots beyond the expected ones (at most
+:data:`ISOLATED_NEGATIVES`: isolated eigenvalues), the ladder restarts instead at
+
+    tau = margin |theta_min|,
+
+with ``theta_min`` the smallest Ritz value of ``steps`` Lanczos steps on ``A`` (Golub & Van Loan,
+Matrix Computations, 4th ed., sec. 10.1). The Ritz values interlace the spectrum, so
+``lambda_min <= theta_min``: the restart never lies above ``margin |lambda_min|``, and an
+underestimate only leaves the ladder to climb on from there. A dense negative spectrum (a
+buckling shell: hundreds of negative pivots) and the later iterations of a solve keep the
+plain ladder, whose decaying shifts follow the softest modes down; restarting there was
+measured to change the buckling path and cost iterations (docs/notes/solver-choice.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+LANCZOS_STEPS: int = 30
+"""Lanczos steps of the estimate (each one product with A)."""
+MARGIN: float = 2.0
+"""The restart shift as a multiple of ``|theta_min|`` (> 1: a margin over the estimate)."""
+ISOLATED_NEGATIVES: int = 16
+"""Most negative pivots (beyond the expected ones) for which the ladder is restarted."""
+
+
+def lowest_ritz_value(matvec: Callable[[np.ndarray], np.ndarray], n: int,
+                      steps: int = LANCZOS_STEPS, seed: int = 0) -> float:
+    """Smallest Ritz value of ``steps`` Lanczos steps on the symmetric operator ``matvec``.
+
+    Full reorthogonalisation (the basis is at most ``steps`` vectors of length ``n``); the
+    start vector is a seeded Gaussian, so the estimate is deterministic. Stops early when the
+    Krylov space is invariant.
+
+    Args:
+        matvec: ``v -> A v`` for a symmetric ``A`` of order ``n``.
+        n: order of A (>= 1).
+        steps: Lanczos steps (>= 1).
+        seed: seed of the start vector.
+
+    Returns:
+        ``theta_min >= lambda_min(A)``.
+
+    """
+    q = np.random.default_rng(seed).standard_normal(n)
+    basis = np.zeros((min(steps, n), n))
+    basis[0] = q / np.linalg.norm(q)
+    alpha: list[float] = []
+    beta: list[float] = []
+    for j in range(basis.shape[0]):
+        w = matvec(basis[j])
+        alpha.append(float(basis[j] @ w))
+        w = w - basis[: j + 1].T @ (basis[: j + 1] @ w)  # full reorthogonalisation, twice
+        w = w - basis[: j + 1].T @ (basis[: j + 1] @ w)
+        b = float(np.linalg.norm(w))
+        if j + 1 == basis.shape[0] or b <= 1e-12 * max(abs(alpha[-1]), 1.0):
+            break
+        beta.append(b)
+        basis[j + 1] = w / b
+    off = beta[: len(alpha) - 1]
+    t = np.diag(alpha) + np.diag(off, 1) + np.diag(off, -1)
+    return float(np.linalg.eigvalsh(t)[0])
+
+
+def is_isolated(negative_pivots: int | None, expected: int) -> bool:
+    """Whether a factorisation's extra negative pivots are few enough to restart the ladder."""
+    return negative_pivots is not None and 0 < negative_pivots - expected <= ISOLATED_NEGATIVES
+
+
+def restart_shifts(theta_min: float, growth: float, count: int,
+                   margin: float = MARGIN) -> list[float]:
+    """Return the ladder restarted at ``margin |theta_min|``.
+
+    ``count`` shifts growing by ``growth``; empty when ``theta_min >= 0`` (no negative
+    curvature found).
+    """
+    if not theta_min < 0:
+        return []
+    start = margin * -theta_min
+    return [start * growth**j for j in range(count)]

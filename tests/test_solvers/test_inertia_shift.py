@@ -1,0 +1,88 @@
+"""The shift ladder restarted from a Lanczos estimate, on matrices with known spectra."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from solvers.inertia_shift import (
+    ISOLATED_NEGATIVES,
+    MARGIN,
+    is_isolated,
+    lowest_ritz_value,
+    restart_shifts,
+)
+from solvers.linear import (
+    LinearSolverOptions,
+    ShiftOptions,
+    SparseDirectSolver,
+    factorize_with_shift,
+)
+
+
+def known_spectrum(eigenvalues: np.ndarray, seed: int = 0) -> sp.csr_matrix:
+    """``Q diag(eigenvalues) Q^T`` with a random orthogonal Q (dense, stored sparse)."""
+    q, _ = np.linalg.qr(np.random.default_rng(seed).standard_normal((eigenvalues.size,) * 2))
+    return sp.csr_matrix((q * eigenvalues) @ q.T)
+
+
+ISOLATED = np.concatenate([[-50.0, -20.0], np.linspace(1.0, 100.0, 118)])
+"""Two isolated negative eigenvalues far below the ladder's first rungs."""
+
+
+def test_ritz_value_bounds_and_finds_an_isolated_minimum():
+    a = known_spectrum(ISOLATED)
+    theta = lowest_ritz_value(lambda v: a @ v, a.shape[0])
+    assert theta >= ISOLATED.min() - 1e-9  # interlacing: never below lambda_min
+    assert theta == pytest.approx(-50.0, rel=1e-3)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_ritz_value_never_undercuts_lambda_min_on_a_dense_negative_spectrum(seed):
+    spectrum = np.random.default_rng(seed).uniform(-10.0, 10.0, 200)
+    a = known_spectrum(spectrum, seed)
+    theta = lowest_ritz_value(lambda v: a @ v, a.shape[0], steps=10)
+    assert spectrum.min() - 1e-9 <= theta < 0
+
+
+def count_factorisations(a: sp.csr_matrix, restart: bool) -> tuple[int, float]:
+    """Factorisations of the ladder from 0 (growth 10) until A + tau I is SPD; accepted tau."""
+    solver = SparseDirectSolver(a, LinearSolverOptions(symmetric="ldlt"))
+    shift = ShiftOptions(growth=10.0, max_shifts=14)
+    scale = float(np.mean(np.abs(a.diagonal())))
+
+    def again(report):
+        if not is_isolated(report.negative_pivots, report.expected_negative):
+            return []
+        return restart_shifts(lowest_ritz_value(lambda v: a @ v, a.shape[0]), shift.growth,
+                              shift.max_shifts)
+
+    reports = factorize_with_shift(lambda tau: solver.factorize(a, tau), scale, shift,
+                                   restart=again if restart else None)
+    assert reports[-1].usable_spd
+    return len(reports), reports[-1].shift
+
+
+def test_isolated_negatives_need_two_factorisations_instead_of_the_ladder():
+    a = known_spectrum(ISOLATED)
+    ladder, tau_ladder = count_factorisations(a, restart=False)
+    restarted, tau = count_factorisations(a, restart=True)
+    print(f"ladder {ladder} factorisations (tau {tau_ladder:.3g}), restarted {restarted} "
+          f"(tau {tau:.3g})")
+    assert restarted == 2 and ladder >= 6
+    assert 50.0 < tau <= MARGIN * 50.0 * (1 + 1e-3)  # just above |lambda_min|
+
+
+def test_a_dense_negative_spectrum_keeps_the_ladder():
+    spectrum = np.concatenate([np.linspace(-30.0, -1.0, 4 * ISOLATED_NEGATIVES),
+                               np.linspace(1.0, 100.0, 100)])
+    a = known_spectrum(spectrum)
+    assert count_factorisations(a, restart=True) == count_factorisations(a, restart=False)
+
+
+def test_is_isolated_and_restart_shifts():
+    assert is_isolated(60 + 4, 60) and not is_isolated(60, 60)
+    assert not is_isolated(60 + ISOLATED_NEGATIVES + 1, 60) and not is_isolated(None, 0)
+    assert restart_shifts(0.5, 10.0, 3) == []
+    assert restart_shifts(-2.0, 10.0, 3) == pytest.approx([2 * MARGIN, 20 * MARGIN, 200 * MARGIN])

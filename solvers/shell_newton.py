@@ -162,6 +162,9 @@ class ShellNewtonOptions:
         stagnation_iterations: Consecutive accepted steps without progress (W lowered by more
             than ``ROUNDOFF_FACTOR eps |W|`` or a new smallest ``||g||``) before the solve stops
             with :class:`ShellSolveError` naming the worst stencil.
+        inertia_restart: On the direct path, let the first iteration of a solve restart its
+            shift ladder from a Lanczos estimate when its factorisation shows a few negative
+            pivots (:mod:`solvers.inertia_shift`; False = the plain ladder).
 
     """
 
@@ -185,6 +188,7 @@ class ShellNewtonOptions:
     modified: ModifiedNewtonOptions = field(default_factory=ModifiedNewtonOptions)
     descent_tolerance: float = 1e-10
     stagnation_iterations: int = 5
+    inertia_restart: bool = False
 
     def __post_init__(self) -> None:
         _positive_checks(self)
@@ -586,7 +590,8 @@ class ShellNewtonSolver:
             if len(history) >= self.options.max_iterations:
                 return x.reshape(-1, 3), self._report(False, "max_iterations", ev, tol,
                                                       history, timers)
-            self._restartable = self.krylov is None and not history  # solvers.inertia_shift
+            self._restartable = (opts.inertia_restart and self.krylov is None
+                                 and not history)  # solvers.inertia_shift
             step = self._iterate(x, ev, timers, near=_grad_norm(ev) <= switch)
             if step is None:
                 report = self._report(False, "no descent step after all shifts", ev, tol,

@@ -243,12 +243,15 @@ SCENE_DEFAULTS: dict[str, Any] = {
     "newton.multigrid.eigen_estimate": "solve",
     "newton.multigrid.fallback": False,
     "newton.multigrid.phase_space": True,
+    "newton.inertia_restart": True,
 }
 """Internal values a scene starts from where they differ from the dataclass defaults (an
 expert key may change them): the low-rank penalty, since ``H^T H`` fills in at large sizes;
 the multigrid-CG settings measured fastest on the product's frames (inexact Newton with
 Eisenstat-Walker forcing down to 1e-4, symmetric block level matrices, Chebyshev bounds once
-per solve, no direct fallback, the wrinkle-phase coarse space; docs/notes/solver-choice.md)."""
+per solve, no direct fallback, the wrinkle-phase coarse space; the first iteration of a warm
+started direct solve restarting its shift ladder from a Lanczos estimate; docs/notes/
+solver-choice.md)."""
 
 
 @dataclass(frozen=True)

@@ -76,3 +76,13 @@ def test_frame_one_wavelength_matches_the_direct_solve_and_theory(default_run):
           f"{theory:.5f} m; frames {[round(w, 5) for w in lengths]}")
     assert lengths[0] == pytest.approx(DIRECT_WAVELENGTH, rel=0.05)
     assert lengths[0] == pytest.approx(theory, rel=0.05)
+
+
+def test_scenes_restart_the_shift_ladder_by_default_and_the_solver_does_not():
+    """The Lanczos-restarted ladder (solvers.inertia_shift) is a scene default: the library's
+    own default keeps the plain ladder its unit and decomposition tests pin."""
+    from solvers.shell_newton import ShellNewtonOptions
+    from wrinkles.shell_setup import ShellOptions
+
+    assert ShellOptions().internals.newton.inertia_restart
+    assert not ShellNewtonOptions().inertia_restart

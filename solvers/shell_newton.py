@@ -153,18 +153,15 @@ class ShellNewtonOptions:
             attempt; nearer the minimum every iteration tries ``tau = 0`` first, keeping the
             quadratic tail (measured schedules: docs/notes/shift-schedule.md).
         linear_method: "direct" (sparse factorisation, ``linear``) or "multigrid" (CG with
-            geometric multigrid on the subdivision hierarchy, ``multigrid``; needs the
-            ``hierarchy`` argument of :class:`ShellNewtonSolver` and a PSD Hessian mode).
+            geometric multigrid, ``multigrid``; needs the ``hierarchy`` of the solver).
         multigrid: Options of the multigrid-preconditioned CG solve.
         modified: Reuse of one factorisation across iterations and frames (modified Newton).
-        descent_tolerance: A direction is a descent direction if
-            ``-g . dx >= descent_tolerance ||g|| ||dx||`` (cosine of the angle, dimensionless).
+        descent_tolerance: Descent test ``-g . dx >= descent_tolerance ||g|| ||dx||`` (a cosine).
         stagnation_iterations: Consecutive accepted steps without progress (W lowered by more
             than ``ROUNDOFF_FACTOR eps |W|`` or a new smallest ``||g||``) before the solve stops
             with :class:`ShellSolveError` naming the worst stencil.
-        inertia_restart: On the direct path, let the first iteration of a solve restart its
-            shift ladder from a Lanczos estimate when its factorisation shows a few negative
-            pivots (:mod:`solvers.inertia_shift`; False = the plain ladder).
+        inertia_restart: Restart the first iteration's shift ladder from a Lanczos estimate
+            (direct path, :mod:`solvers.inertia_shift`; False = the plain ladder).
 
     """
 

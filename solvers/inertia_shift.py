@@ -26,6 +26,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from solvers.linear import FactorReport, ShiftOptions
+
 LANCZOS_STEPS: int = 30
 """Lanczos steps of the estimate (each one product with A)."""
 MARGIN: float = 2.0
@@ -88,3 +90,16 @@ def restart_shifts(theta_min: float, growth: float, count: int,
         return []
     start = margin * -theta_min
     return [start * growth**j for j in range(count)]
+
+
+def restart_ladder(report: FactorReport, matvec: Callable[[np.ndarray], np.ndarray], n: int,
+                   shift: ShiftOptions) -> list[float]:
+    """Return the shifts that replace the ladder after the indefinite factorisation ``report``.
+
+    Empty (keep the ladder) unless its extra negative pivots are isolated (:func:`is_isolated`);
+    else ``shift.max_shifts`` shifts from ``MARGIN |theta_min|`` of the operator ``matvec`` of
+    order ``n`` (:func:`lowest_ritz_value`), growing by ``shift.growth``.
+    """
+    if not is_isolated(report.negative_pivots, report.expected_negative):
+        return []
+    return restart_shifts(lowest_ritz_value(matvec, n), shift.growth, shift.max_shifts)

@@ -47,7 +47,7 @@ from meshes.errors import InputError, SolverError
 from models.shell.assembly import HESSIAN_MODES
 from models.shell.hinge_angle import hinge_angles
 from models.shell.rest import face_quality
-from solvers.inertia_shift import is_isolated, lowest_ritz_value, restart_shifts
+from solvers.inertia_shift import restart_ladder
 from solvers.linear import (
     AugmentedPenaltySolver,
     FactorReport,
@@ -539,7 +539,6 @@ class ShellNewtonSolver:
         self._refresh = True  # the next iteration must factorise (modified Newton)
         self._mode_now = ""
         self._target = 0.0  # gradient tolerance of the running solve (multigrid forcing)
-        self._restartable = False  # the ladder may restart from a Lanczos estimate
 
     def _reuse_next(self) -> bool:
         """Whether the next iteration will try the previous factorisation (modified Newton)."""
@@ -587,9 +586,8 @@ class ShellNewtonSolver:
             if len(history) >= self.options.max_iterations:
                 return x.reshape(-1, 3), self._report(False, "max_iterations", ev, tol,
                                                       history, timers)
-            self._restartable = (opts.inertia_restart and self.krylov is None
-                                 and not history)  # solvers.inertia_shift
-            step = self._iterate(x, ev, timers, near=_grad_norm(ev) <= switch)
+            step = self._iterate(x, ev, timers, near=_grad_norm(ev) <= switch,
+                                 first=not history)
             if step is None:
                 report = self._report(False, "no descent step after all shifts", ev, tol,
                                       history, timers)
@@ -647,13 +645,14 @@ class ShellNewtonSolver:
         scale = self.options.gradient_scale or g0
         return self.options.atol + self.options.rtol * scale
 
-    def _iterate(self, x: np.ndarray, ev: EnergyEval, timers: _Timers, near: bool
-                 ) -> _Step | None:
+    def _iterate(self, x: np.ndarray, ev: EnergyEval, timers: _Timers, near: bool,
+                 first: bool = False) -> _Step | None:
         """One Newton iteration: the previous factorisation (modified Newton) or a new one.
 
         ``near``: ``||g|| <= switch_rtol g_ref``; there the unshifted Hessian is always tried
         first (quadratic convergence), farther away the last successful shift is reused
-        (:func:`solvers.linear.shift_candidates`).
+        (:func:`solvers.linear.shift_candidates`). ``first``: the solve's first iteration, whose
+        ladder may restart from a Lanczos estimate (``inertia_restart``).
         """
         assert ev.grad is not None  # order >= 1 evaluation
         if self.krylov is not None:
@@ -668,10 +667,10 @@ class ShellNewtonSolver:
                 return self._step(x, ev, found, self._last_shift, 0, None, cg_before)
         if ev.hess is None:  # order-1 evaluation for a reuse that failed
             ev = self._evaluate(x, timers, self._mode_now)
-        return self._factorize_and_step(x, ev, timers, cg_before, near)
+        return self._factorize_and_step(x, ev, timers, cg_before, near, first)
 
     def _factorize_and_step(self, x: np.ndarray, ev: EnergyEval, timers: _Timers,
-                            cg_before: int, near: bool) -> _Step | None:
+                            cg_before: int, near: bool, first: bool = False) -> _Step | None:
         """Factorise with shifts until a direction passes the descent test and line search.
 
         The schedule is :func:`solvers.linear.shift_candidates` from ``tau_prev /
@@ -692,10 +691,11 @@ class ShellNewtonSolver:
             found.extend([direction] if direction is not None else [])
             return direction is not None
 
+        restartable = first and self.options.inertia_restart and self.krylov is None
         reports = factorize_with_shift(factorize, scale, self.options.shift,
                                        self._last_shift / self.options.shift_decay,
                                        accept, zero_first=near or None,
-                                       restart=self._restart(ev) if self._restartable else None)
+                                       restart=self._restart(ev) if restartable else None)
         if not found:
             self._factor_age = 0
             return None
@@ -717,15 +717,7 @@ class ShellNewtonSolver:
             out = hess @ v
             return out + g.T @ (g @ v) if g is not None else out
 
-        shift = self.options.shift
-
-        def restart(report: FactorReport) -> list[float]:
-            if not is_isolated(report.negative_pivots, report.expected_negative):
-                return []
-            return restart_shifts(lowest_ritz_value(product, hess.shape[0]), shift.growth,
-                                  shift.max_shifts)
-
-        return restart
+        return lambda report: restart_ladder(report, product, hess.shape[0], self.options.shift)
 
     def _direction(self, x: np.ndarray, ev: EnergyEval, timers: _Timers) -> _Direction | None:
         """Solve with the current factorisation; descent test and line search."""

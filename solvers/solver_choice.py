@@ -21,10 +21,11 @@ import os
 from typing import Literal
 
 from meshes.errors import InputError
+from solvers.shell_newton import LINEAR_METHODS as CONCRETE_METHODS
 
 ConcreteMethod = Literal["direct", "multigrid"]
 
-LINEAR_METHODS: tuple[str, ...] = ("auto", "direct", "multigrid")
+LINEAR_METHODS: tuple[str, ...] = ("auto", *CONCRETE_METHODS)
 """``[shell.solver] method`` values; "auto" is resolved by :func:`choose_linear_method`."""
 
 MULTIGRID_FROM_VERTICES: int = 2000

@@ -11,6 +11,7 @@ from solvers.inertia_shift import (
     MARGIN,
     is_isolated,
     lowest_ritz_value,
+    restart_ladder,
     restart_shifts,
 )
 from solvers.linear import (
@@ -53,10 +54,7 @@ def count_factorisations(a: sp.csr_matrix, restart: bool) -> tuple[int, float]:
     scale = float(np.mean(np.abs(a.diagonal())))
 
     def again(report):
-        if not is_isolated(report.negative_pivots, report.expected_negative):
-            return []
-        return restart_shifts(lowest_ritz_value(lambda v: a @ v, a.shape[0]), shift.growth,
-                              shift.max_shifts)
+        return restart_ladder(report, lambda v: a @ v, a.shape[0], shift)
 
     reports = factorize_with_shift(lambda tau: solver.factorize(a, tau), scale, shift,
                                    restart=again if restart else None)

@@ -32,6 +32,7 @@ times, from the last good state; then ``SolverError`` is raised with that state 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -174,6 +175,8 @@ class Body:
         self._inertia_force: Any = None  # int rho a.w dX (pin_reaction, Newmark)
         self._mass_ksp: Any = None
         self._term: QuadraticTerm | None = None
+        self._solve: Callable[[EnergyNewton], NewtonResult] = EnergyNewton.solve
+        self._interface: Any = None  # set_interface_force
         self.contacts = [PenaltyContact(c, mesh, material.E) for c in self.options.contacts]
         self.dx = ufl.Measure("dx", domain=mesh,
                               metadata={"quadrature_degree": self.options.qdegree})
@@ -305,6 +308,27 @@ class Body:
             if solver is not None:
                 solver.set_quadratic_term(term)
 
+    def set_interface_force(self, F: Any | None) -> None:
+        """Record the nodal force ``F`` (Function on ``V``) another model exerts outside ``Pi``.
+
+        The monolithic two-way shell (:mod:`solvers.monolithic`) minimises ``Pi`` together
+        with the shell energy, so the shell's force ``B^T f`` on the body is in no form of
+        ``Pi``; on pinned nodes the pins carry it, and :meth:`pin_reaction` subtracts it there
+        (``None``: no such force).
+        """
+        self._interface = F
+
+    def use_solve(self, solve: Callable[[EnergyNewton], NewtonResult] | None) -> None:
+        """Replace the Newton solve of every (sub)step by ``solve(problem)`` (``None``: restore).
+
+        ``problem`` is the step's :class:`EnergyNewton` (``Pi`` with the step's pins, inertia
+        and guess already set in ``u``); ``solve`` must leave ``u`` at its solution and report
+        it, like :meth:`EnergyNewton.solve`. The two-way coupled solve
+        (:mod:`solvers.monolithic`) minimises ``Pi`` together with the shell energy this way,
+        inside the body's own step control (halvings, dynamics, rigid balls).
+        """
+        self._solve = EnergyNewton.solve if solve is None else solve
+
     def applied_load(self) -> np.ndarray:
         """Total force ``int g dX`` [N] of the nodal load (3,); equals ``sum_j F_j``."""
         if self._load_forms is None:
@@ -336,7 +360,8 @@ class Body:
         residual ``dPi/du`` there (assembled without Dirichlet rows, the last step's
         potential: with inertia in dynamics; Newmark: static residual + ``M a``, also right
         at t = 0 once ``a_0`` is set), summed per component over the owned pinned dofs. The
-        quadratic term of :meth:`set_quadratic_energy` is not included.
+        quadratic term of :meth:`set_quadratic_energy` is not included; the force of
+        :meth:`set_interface_force` is (the pins carry its share on pinned nodes).
         """
         solver = self._dynamic_solver or self._static_solver
         forms = [solver.problem.F]
@@ -352,8 +377,11 @@ class Body:
         b.scatter_reverse(dolfinx.la.InsertMode.add)
         dofs = np.unique(np.concatenate([bc.dof_indices()[0][:bc.dof_indices()[1]]
                                          for bc in self._bcs] or [np.zeros(0, np.int32)]))
+        values = b.array[dofs]
+        if self._interface is not None:
+            values = values - self._interface.x.array[dofs]
         force = np.zeros(3)
-        np.add.at(force, dofs % 3, b.array[dofs])
+        np.add.at(force, dofs % 3, values)
         return np.asarray(self.mesh.comm.allreduce(force, op=MPI.SUM))
 
     def initial_acceleration(self) -> None:
@@ -448,7 +476,7 @@ class Body:
             solver = self._dynamic_solver  # type: ignore[assignment]
         else:
             self._static_guess(h)
-        result = solver.solve()
+        result = self._solve(solver)
         if result.converged:
             if dynamic:
                 self._update_kinematics(h)

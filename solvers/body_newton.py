@@ -213,6 +213,7 @@ class EnergyNewton:
             self.problem.solver.setLineSearchPreCheck(self._armijo)
         self.problem.solver.setConvergenceTest(self._convergence_test)
         self._bcs, self._bc_rows = bcs, bc_rows(bcs, u)
+        self._wrap_callbacks()
         self._term: QuadraticTerm | None = None
         self._term_jacobian: Any = None
         self._union: Any = None
@@ -244,7 +245,6 @@ class EnergyNewton:
         self._term_jacobian = term.K.duplicate(copy=True)
         self._term_jacobian.zeroRowsColumns(self._bc_rows, diag=0.0)
         if self._union is None:
-            self._wrap_callbacks()
             A = self.problem.A
             self._assemble_jacobian(self.u.x.petsc_vec, A)  # the form's pattern, assembled
             self._union = A.duplicate(copy=True)
@@ -252,6 +252,29 @@ class EnergyNewton:
                              structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
             self._union.setLGMap(*A.getLGMap())
             self.problem.solver.setJacobian(self._jacobian, self._union, self._union)
+
+    @property
+    def dirichlet_rows(self) -> np.ndarray:
+        """Global PETSc indices of the Dirichlet dofs owned by this rank."""
+        return self._bc_rows
+
+    def gradient(self) -> Any:
+        """``dPi/du`` at the current ``u``, quadratic term included (collective).
+
+        Returns the solver's residual vector (owned rows; overwritten by the next call): the
+        Dirichlet rows hold ``u - g``, zero when ``u`` satisfies the pins.
+        """
+        self._residual(None, self.u.x.petsc_vec, self.problem.b)
+        return self.problem.b
+
+    def hessian(self) -> Any:
+        """``d^2 Pi/du^2`` at the current ``u`` with identity Dirichlet rows and columns.
+
+        Returns the solver's Jacobian matrix (overwritten by the next call); collective.
+        """
+        J = self._union if self._union is not None else self.problem.A
+        self._jacobian(None, self.u.x.petsc_vec, J, J)
+        return J
 
     def _wrap_callbacks(self) -> None:
         """Replace dolfinx's SNES residual by :meth:`_residual` (dolfinx's assembly + term)."""

@@ -1,7 +1,8 @@
 """Coupled iterations: the embedded shell with the body, and rigid balls with the body.
 
-* Shell <-> body (Remillard & Kry 2013, two-way): per frame the body is re-stepped with the
-  cluster penalty, shell held fixed, as a quadratic term of its energy
+* Shell <-> body (Remillard & Kry 2013, two-way) as a fixed point; the default two-way scheme
+  is one Newton solve of both instead (:mod:`solvers.monolithic`). Per frame the body is
+  re-stepped with the cluster penalty, shell held fixed, as a quadratic term of its energy
   (:class:`models.coupling.PenaltyCoupling`), then the shell is re-solved for the new target;
   the body load ``c = M (x - X_T)`` is extrapolated by :class:`Anderson` acceleration
   (:func:`coupled_frame`). Without acceleration this is block Gauss-Seidel on the total
@@ -40,7 +41,7 @@ from models.rigid import (
 )
 
 CouplingMode = Literal["one_way", "two_way"]
-CouplingScheme = Literal["implicit", "explicit"]
+CouplingScheme = Literal["monolithic", "implicit", "explicit"]
 
 
 @dataclass(frozen=True)
@@ -50,11 +51,11 @@ class CouplingOptions:
     Attributes:
         mode: ``"one_way"`` (the shell follows the body, Algorithm 1 of the draft) or
             ``"two_way"`` (the penalty acts on the body too).
-        scheme: ``"implicit"`` (:func:`coupled_frame`: the penalty, shell fixed, is a quadratic
-            term of the body's energy; Anderson on the body load) or ``"explicit"`` (the
-            relaxed penalty force ``B^T f`` fed back as a fixed nodal load): explicit converges
-            for skins not much stiffer than the body, implicit for stiff ones
-            (docs/notes/two-way-coupling.md).
+        scheme: ``"monolithic"`` (one Newton solve of body and shell per body step,
+            :mod:`solvers.monolithic`), or a fixed point per frame: ``"implicit"``
+            (:func:`coupled_frame`: the penalty, shell fixed, is a quadratic term of the body's
+            energy; Anderson on the body load) or ``"explicit"`` (the relaxed penalty force
+            ``B^T f`` fed back as a fixed nodal load); docs/notes/two-way-coupling.md.
         max_iterations: body/shell iterations per frame (two-way), >= 1; a frame that reaches
             it is kept but flagged ``coupling_converged = false``.
         rtol: converged when ``max|u_k - u_{k-1}| <= rtol max|u_k|`` (dimensionless).
@@ -68,16 +69,16 @@ class CouplingOptions:
     max_iterations: int = 100
     rtol: float = 1e-6
     memory: int = 8
-    scheme: CouplingScheme = "implicit"
+    scheme: CouplingScheme = "monolithic"
     relaxation: float = 0.5
 
     def __post_init__(self) -> None:
         if self.mode not in ("one_way", "two_way"):
             raise InputError(f"shell.coupling.mode: expected 'one_way' or 'two_way', "
                              f"got {self.mode!r}")
-        if self.scheme not in ("implicit", "explicit"):
-            raise InputError(f"shell.coupling.scheme: expected 'implicit' or 'explicit', "
-                             f"got {self.scheme!r}")
+        if self.scheme not in ("monolithic", "implicit", "explicit"):
+            raise InputError(f"shell.coupling.scheme: expected 'monolithic', 'implicit' or "
+                             f"'explicit', got {self.scheme!r}")
         if not 0.0 < self.relaxation <= 1.0:
             raise InputError(f"shell.coupling.relaxation: must be in (0, 1], "
                              f"got {self.relaxation}")

@@ -1,35 +1,156 @@
 """Two-way coupling of the shell with the body, as one stage replacing both per frame.
 
 Remillard & Kry 2013 couple skin and body both ways: the cluster penalty ``k_P ||H (x - y(u))||^2``
-acts on the body too. The frame iterates body step and shell solve to the coupled state
-(:func:`solvers.coupling.coupled_frame`); the record adds the coupling iterations, the last
-change, whether it converged, and the penalty's total force on shell and body (equal, since
-the rows of B sum to 1).
+acts on the body too. By default (``coupling.scheme = "monolithic"``) every body step is one
+Newton solve of body and shell together (:class:`CoupledStep`, :mod:`solvers.monolithic`);
+the fixed points iterate body step and shell solve per frame instead
+(:func:`solvers.coupling.coupled_frame`, :func:`solvers.coupling.explicit_frame`). The record
+adds the coupling iterations, the last change (monolithic: the final relative gradient),
+whether it converged, and the penalty's total force on shell and body (equal, since the rows
+of B sum to 1).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections.abc import Callable, Mapping
 from typing import Any
+
+import numpy as np
 
 from models.backend import MPI
 from models.coupling import PenaltyCoupling, body_force_function, penalty_force
 from solvers.body import Body
+from solvers.body_newton import EnergyNewton, NewtonResult
 from solvers.coupling import coupled_frame, explicit_frame
+from solvers.monolithic import BodyUnknowns, CoupledEnergy
+from solvers.shell_newton import (
+    ModifiedNewtonOptions,
+    ShellNewtonSolver,
+    ShellSolveError,
+    ShellSolveReport,
+)
 from wrinkles.shell_output import Writer
 from wrinkles.shell_setup import Shell
-from wrinkles.shell_stage import StageRecord, shell_record, solve_shell, target
+from wrinkles.shell_stage import (
+    StageRecord,
+    admissible_start,
+    imperfection,
+    shell_record,
+    solve_shell,
+    target,
+)
 
 
-def coupling_record(shell: Shell, iterations: int, change: float, rtol: float,
+class CoupledStep:
+    """The body's step solve as the monolithic solve of body and shell (collective).
+
+    Installed by :meth:`solvers.body.Body.use_solve`, so the body's step control (pins,
+    inertia, halvings, rigid balls) is unchanged. Per call: the shell's warm start moves with
+    the body's guess (``x_prev + (y(u_0) - y_prev)``, the frame's imperfection on the first
+    call of a frame, :func:`wrinkles.shell_stage.admissible_start`), then the shell's Newton
+    solver minimises :class:`solvers.monolithic.CoupledEnergy` over shell and body at once
+    (direct linear solves). Only a converged solve moves the shell; a failed one reports
+    failure and the body halves its step. The gradient reference is the largest initial
+    coupled gradient so far (``shell.gradient_scale``, checkpointed).
+    """
+
+    def __init__(self, shell: Shell, body: Body) -> None:
+        self.shell, self.body = shell, body
+        self.B = shell.embedding.global_matrix()
+        self.options = dataclasses.replace(shell.options.internals.newton,
+                                           linear_method="direct",
+                                           modified=ModifiedNewtonOptions())
+        self.solvers: dict[int, tuple[CoupledEnergy, ShellNewtonSolver]] = {}
+        self.frame, self.perturb = 0, True
+        self.reports: list[ShellSolveReport] = []
+
+    def start_frame(self, frame: int) -> None:
+        """Begin frame ``frame``: its first solve adds the imperfection."""
+        self.frame, self.perturb, self.reports = frame, True, []
+
+    def _solver(self, problem: EnergyNewton) -> tuple[CoupledEnergy, ShellNewtonSolver]:
+        """Return the coupled energy and its solver for a step problem (static or dynamic)."""
+        key = id(problem)
+        if key not in self.solvers:
+            energy = CoupledEnergy(self.shell.energy, self.shell.rest, self.B,
+                                   BodyUnknowns(problem))
+            self.solvers[key] = (energy, ShellNewtonSolver(energy, self.options))
+        return self.solvers[key]
+
+    def _start(self, energy: CoupledEnergy) -> tuple[np.ndarray, np.ndarray]:
+        """Return the warm start ``z_0 = (x_0, u_0)`` and ``u_0`` (the body's guess, flat)."""
+        shell = self.shell
+        u0 = energy.body.get()
+        y0 = energy.target(u0)
+        eta = imperfection(shell, self.frame) if self.perturb else 0.0
+        shell.energy.set_target(y0)
+        x0, shell.start_repaired = admissible_start(shell.energy,
+                                                    shell.x + (y0 - shell.y) + eta, y0 + eta)
+        return np.vstack([x0, u0.reshape(-1, 3)]), u0
+
+    def __call__(self, problem: EnergyNewton) -> NewtonResult:
+        """Solve the step coupled; leave ``u`` (and the shell) at the solution on success."""
+        energy, solver = self._solver(problem)
+        z0, u0 = self._start(energy)
+        g0 = float(np.linalg.norm(np.asarray(energy.evaluate(z0, order=1).grad)))
+        self.shell.gradient_scale = max(self.shell.gradient_scale, g0)
+        solver.options = dataclasses.replace(self.options,
+                                             gradient_scale=self.shell.gradient_scale or 1.0)
+        try:
+            z, report = solver.minimize(z0)
+        except ShellSolveError as exc:
+            z, report = None, exc.report
+        self.reports.append(report)
+        if z is None or not report.converged:
+            energy.body.set(u0)
+            return NewtonResult(False, -1, report.iterations, report.grad_norm, math.inf,
+                                problem.min_det_f())
+        x, u = energy.split(self.body.mesh.comm.bcast(z, root=0))
+        energy.body.set(u.reshape(-1))
+        self.shell.x, self.shell.y = np.array(x), energy.target(u)
+        self.shell.energy.set_target(self.shell.y)
+        self.set_force()
+        self.perturb = False
+        return NewtonResult(True, 1, report.iterations, report.grad_norm, report.energy,
+                            problem.min_det_f())
+
+    def set_force(self) -> None:
+        """Set the current shell's penalty force ``f`` as ``shell.force`` and the body's force.
+
+        The body gets ``B^T f`` as its interface force (the pins' share of it counts in their
+        reaction, :meth:`solvers.body.Body.set_interface_force`).
+        """
+        shell = self.shell
+        op = shell.energy.penalty_operator
+        shell.force = (penalty_force(op, shell.params.k_P, shell.x, shell.y) if op is not None
+                       else np.zeros_like(shell.x))
+        self.body.set_interface_force(body_force_function(shell.embedding, shell.force,
+                                                          self.body.V))
+
+    def frame_report(self) -> ShellSolveReport:
+        """Return the frame's solves as one report: summed iterations and times, last state."""
+        last = self.reports[-1]
+        return dataclasses.replace(
+            last, iterations=sum(r.iterations for r in self.reports),
+            history=tuple(h for r in self.reports for h in r.history),
+            **{name: sum(getattr(r, name) for r in self.reports)
+               for name in ("time_evaluate", "time_line_search", "time_factorize",
+                            "time_analysis", "time_solve", "time_total")})
+
+
+def coupling_record(shell: Shell, iterations: int, change: float, converged: bool,
                     force_body: list[float]) -> StageRecord:
     """Two-way coupling numbers: iterations, last relative change, converged, total forces.
 
-    ``coupling_converged`` is False when the frame stopped at ``max_iterations`` with the
-    change above ``rtol`` (the progress line then says so: the frame is kept, unconverged).
+    ``coupling_converged`` is False when a fixed-point frame stopped at ``max_iterations``
+    with the change above ``rtol`` (the progress line then says so: the frame is kept,
+    unconverged). For the monolithic solve ``iterations`` are its Newton iterations and
+    ``change`` its final gradient norm relative to the reference.
     """
     return {"coupling_iterations": iterations, "coupling_change": change,
-            "coupling_converged": bool(change <= rtol),
+            "coupling_converged": bool(converged),
             "coupling_force_shell": shell.force.sum(axis=0).tolist(),
             "coupling_force_body": force_body}
 
@@ -90,8 +211,8 @@ def explicit_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mapping
         write(frame, body.t)
         return {**result.record, **shell_record(shell, result.report),
                 "shell_start_repaired": repaired,
-                **coupling_record(shell, result.iterations, result.change, options.rtol,
-                                  body.applied_load().tolist())}
+                **coupling_record(shell, result.iterations, result.change,
+                                  result.change <= options.rtol, body.applied_load().tolist())}
 
     return stage
 
@@ -102,6 +223,8 @@ def two_way_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mapping[
     options, comm = shell.options.internals.coupling, body.mesh.comm
     if options.scheme == "explicit":
         return explicit_stage(shell, body, body_stage, write)
+    if options.scheme == "monolithic":
+        return monolithic_stage(shell, body, body_stage, write)
 
     def stage(frame: int) -> StageRecord:
         coupling = penalty_coupling(shell, body)
@@ -119,11 +242,32 @@ def two_way_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mapping[
         write(frame, body.t)
         return {**result.record, **shell_record(shell, result.report),
                 "shell_start_repaired": repaired,
-                **coupling_record(shell, result.iterations, result.change, options.rtol,
-                                  coupled_force(shell, body))}
+                **coupling_record(shell, result.iterations, result.change,
+                                  result.change <= options.rtol, coupled_force(shell, body))}
 
     return stage
 
 
-__all__ = ["apply_force", "coupled_force", "coupling_record", "explicit_stage", "feed_back",
-           "penalty_coupling", "two_way_stage"]
+def monolithic_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mapping[str, Any]],
+                     write: Writer) -> Callable[[int], StageRecord]:
+    """Return the stage of the monolithic scheme: every body step is a :class:`CoupledStep`."""
+    step = CoupledStep(shell, body)
+    body.use_solve(step)
+    step.set_force()  # a resumed run's shell (checkpointed x, y)
+
+    def stage(frame: int) -> StageRecord:
+        step.start_frame(frame)
+        record = body_stage(frame)
+        report = step.frame_report()
+        write(frame, body.t)
+        force_body = (step.B.T @ shell.force).sum(axis=0).tolist()
+        return {**record, **shell_record(shell, report), "coupling_scheme": "monolithic",
+                **coupling_record(shell, report.iterations,
+                                  report.grad_norm / max(shell.gradient_scale, 1e-300),
+                                  report.converged, force_body)}
+
+    return stage
+
+
+__all__ = ["CoupledStep", "apply_force", "coupled_force", "coupling_record", "explicit_stage",
+           "feed_back", "monolithic_stage", "penalty_coupling", "two_way_stage"]

@@ -285,13 +285,17 @@ class ShellEnergy:
         """Vertex-level H^T H (n, n), or None when the penalty is off."""
         return penalty_gram(self._penalty) if self._penalty is not None else None
 
-    def set_target(self, y: np.ndarray) -> None:
+    def set_target(self, y: np.ndarray, normals: bool = True) -> None:
         """Set the penalty target y (n, 3), e.g. ``B (X_q + u_q)``; validated and copied.
 
         The flip barrier's reference normals become the unit face normals of y (a face
-        degenerate on y keeps its rest normal).
+        degenerate on y keeps its rest normal). ``normals = False`` keeps the current ones:
+        a solve in which y moves with the unknowns (:mod:`solvers.monolithic`) holds the
+        barrier's reference fixed, so that W stays a function of the positions and y alone.
         """
         self._target = check_positions(y, self.n_vertices, "y").copy()
+        if not normals:
+            return
         self._ref_normals = reference_normals(self._target, self.topology.faces,
                                               self.rest.rest_areas, self._rest_normals)
 

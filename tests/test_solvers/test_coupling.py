@@ -29,7 +29,8 @@ def coupled_scene(max_iterations: int = MAX_IT) -> dict:
     shell = {"subdivision": {"levels": 1}, "skin": SKIN, "energy": {"k_P": 1.0e3},
              "solver": {"rtol": 1e-8, "max_iterations": 300}, "imperfection": 1e-3,
              "coupling": {"mode": "two_way"}}
-    shell["solver"]["options"] = {"coupling.max_iterations": max_iterations}
+    shell["solver"]["options"] = {"coupling.max_iterations": max_iterations,
+                                  "coupling.scheme": "implicit"}
     return bar_scene((-0.04 * LENGTH, 0.0, 0.0), 1, shell)
 
 

@@ -26,6 +26,7 @@ Usage::
 
     python benchmarks/two_way.py
     python benchmarks/two_way.py --frames 2 --fixed-point
+    python benchmarks/two_way.py --frames 1 --set shell.subdivision.levels=0   # seconds
 """
 
 from __future__ import annotations
@@ -57,9 +58,10 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
 }
 
 
-def run_config(scene: str, overrides: list[str], frames: int | None) -> dict[str, Any]:
+def run_config(scene: str, overrides: list[str], frames: int | None,
+               common: list[str] | None = None) -> dict[str, Any]:
     """Run one configuration; return its timings, iteration counts and final state."""
-    extra = [f"time.frames={frames}"] if frames else []
+    extra = [*(common or []), *([f"time.frames={frames}"] if frames else [])]
     spec = load_scene(REPO / scene, [*overrides, *extra, *QUIET])
     with tempfile.TemporaryDirectory(prefix="two_way_") as tmp:
         run = prepare(spec, Path(tmp), MPI.COMM_WORLD)
@@ -129,6 +131,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                    "the scenes' own, 4)")
     p.add_argument("--fixed-point", action="store_true",
                    help="also run the two-way scene by the fixed point (slow)")
+    p.add_argument("--set", dest="overrides", action="append", default=[],
+                   metavar="KEY=VALUE", help="scene override applied to every run")
     p.add_argument("--out", type=Path, default=RESULTS)
     args = p.parse_args(argv)
     names = ["one_way", "two_way"] + (["fixed_point"] if args.fixed_point else [])
@@ -136,7 +140,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     for name in names:
         scene, overrides = CONFIGS[name]
         print(f"running {name}: {scene} {' '.join(overrides)}", flush=True)
-        rows[name] = run_config(scene, overrides, args.frames)
+        rows[name] = run_config(scene, overrides, args.frames, args.overrides)
     rows["one_way"]["wavelength_m"] = wrinkle_wavelength(rows["one_way"]["shell"])
     for name in names[1:]:
         rows[name]["effect"] = effect(rows["one_way"], rows[name])
@@ -144,6 +148,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     print(text)
     doc = {"machine": {"node": platform.node(), "cpus": os.cpu_count(),
                        "load_avg_1min": os.getloadavg()[0]},
+           "overrides": args.overrides, "frames": args.frames,
            "table": text,
            "rows": {k: {kk: vv for kk, vv in v.items() if kk not in ("body_u", "shell")}
                     for k, v in rows.items()}}

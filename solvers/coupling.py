@@ -7,8 +7,8 @@
   the body load ``c = M (x - X_T)`` is extrapolated by :class:`Anderson` acceleration
   (:func:`coupled_frame`). Without acceleration this is block Gauss-Seidel on the total
   energy ``Pi(u) + W(x, y(u))``, monotone but slow for a stiff skin (contraction 0.90-0.98
-  per iteration: docs/notes/two-way-coupling.md). For soft skins the explicit scheme, the
-  relaxed penalty force lagged as a body load (:func:`explicit_frame`), converges faster.
+  per iteration: docs/notes/two-way-coupling.md); kept as the reference the monolithic
+  solve is tested against.
 * Rigid balls <-> body (:class:`BallCoupling`): per body step the interface equation of the
   ball positions is solved by Broyden's method (:func:`broyden_solve`), each residual a body
   step with the spheres moved (:mod:`models.rigid` has the scheme and the momentum ledger).
@@ -41,7 +41,7 @@ from models.rigid import (
 )
 
 CouplingMode = Literal["one_way", "two_way"]
-CouplingScheme = Literal["monolithic", "implicit", "explicit"]
+CouplingScheme = Literal["monolithic", "implicit"]
 
 
 @dataclass(frozen=True)
@@ -52,16 +52,14 @@ class CouplingOptions:
         mode: ``"one_way"`` (the shell follows the body, Algorithm 1 of the draft) or
             ``"two_way"`` (the penalty acts on the body too).
         scheme: ``"monolithic"`` (one Newton solve of body and shell per body step,
-            :mod:`solvers.monolithic`), or a fixed point per frame: ``"implicit"``
+            :mod:`solvers.monolithic`) or ``"implicit"``, the fixed point per frame
             (:func:`coupled_frame`: the penalty, shell fixed, is a quadratic term of the body's
-            energy; Anderson on the body load) or ``"explicit"`` (the relaxed penalty force
-            ``B^T f`` fed back as a fixed nodal load); docs/notes/two-way-coupling.md.
-        max_iterations: body/shell iterations per frame (two-way), >= 1; a frame that reaches
-            it is kept but flagged ``coupling_converged = false``.
-        rtol: converged when ``max|u_k - u_{k-1}| <= rtol max|u_k|`` (dimensionless).
-        memory: difference columns of the Anderson least-squares secant, >= 1 (implicit).
-        relaxation: under-relaxation omega of the fed-back force (explicit),
-            ``F_k = (1 - omega) F_{k-1} + omega B^T f_k``, in (0, 1].
+            energy; Anderson on the body load); docs/notes/two-way-coupling.md.
+        max_iterations: body/shell iterations per frame (fixed point), >= 1; a frame that
+            reaches it is kept but flagged ``coupling_converged = false``.
+        rtol: fixed point converged when ``max|u_k - u_{k-1}| <= rtol max|u_k|``
+            (dimensionless).
+        memory: difference columns of the Anderson least-squares secant, >= 1.
 
     """
 
@@ -70,18 +68,14 @@ class CouplingOptions:
     rtol: float = 1e-6
     memory: int = 8
     scheme: CouplingScheme = "monolithic"
-    relaxation: float = 0.5
 
     def __post_init__(self) -> None:
         if self.mode not in ("one_way", "two_way"):
             raise InputError(f"shell.coupling.mode: expected 'one_way' or 'two_way', "
                              f"got {self.mode!r}")
-        if self.scheme not in ("monolithic", "implicit", "explicit"):
-            raise InputError(f"shell.coupling.scheme: expected 'monolithic', 'implicit' or "
-                             f"'explicit', got {self.scheme!r}")
-        if not 0.0 < self.relaxation <= 1.0:
-            raise InputError(f"shell.coupling.relaxation: must be in (0, 1], "
-                             f"got {self.relaxation}")
+        if self.scheme not in ("monolithic", "implicit"):
+            raise InputError(f"shell.coupling.scheme: expected 'monolithic' or 'implicit', "
+                             f"got {self.scheme!r}")
         if self.memory < 1:
             raise InputError(f"shell.coupling.memory: must be >= 1, got {self.memory}")
         if self.max_iterations < 1:
@@ -199,35 +193,6 @@ def coupled_frame(body: Any, coupling: PenaltyCoupling, options: CouplingOptions
         if change <= options.rtol:
             break
         load = accel.relax(load, coupling.load(offset()))
-    return CoupledFrame(record, report, k, change)
-
-
-def explicit_frame(body: Any, options: CouplingOptions,
-                   step_body: Callable[[], Mapping[str, Any]],
-                   solve_shell: Callable[[], Any], feed_back: Callable[[], None],
-                   reset_shell: Callable[[], None]) -> CoupledFrame:
-    """Iterate one frame with the shell's force lagged as a fixed, relaxed body load.
-
-    Body steps with the current load, shell solve; then repeatedly: ``feed_back`` the relaxed
-    penalty force ``B^T f``, redo the frame's body steps from the saved state with the shell
-    reset to the frame's start, re-solve the shell, until ``max|u_k - u_{k-1}| <= rtol
-    max|u_k|`` or ``max_iterations``. Converges for skins not much stiffer than the body
-    (docs/notes/two-way-coupling.md).
-    """
-    saved, comm = body.snapshot(), body.mesh.comm
-    record = dict(step_body())
-    report = solve_shell()
-    change, k = math.inf, 0
-    for k in range(1, options.max_iterations + 1):  # noqa: B007  (k is reported)
-        u_old = body.u.x.array.copy()
-        feed_back()
-        body.restore(saved)
-        reset_shell()
-        record = dict(step_body())
-        change = relative_change(comm, body.u.x.array, u_old)
-        report = solve_shell()
-        if change <= options.rtol:
-            break
     return CoupledFrame(record, report, k, change)
 
 
@@ -464,5 +429,4 @@ class BallCoupling:
 
 
 __all__ = ["Anderson", "BallCoupling", "CoupledFrame", "CouplingMode", "CouplingOptions",
-           "explicit_frame",
            "CouplingScheme", "broyden_solve", "coupled_frame", "relative_change"]

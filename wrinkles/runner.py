@@ -83,7 +83,7 @@ from wrinkles.scene import Scene, SceneMesh, mesh_builder, scene_dict
 from wrinkles.shell_output import make_writer
 from wrinkles.shell_setup import Shell, build_shell
 from wrinkles.shell_stage import one_way_stage, restore_shell, shell_arrays
-from wrinkles.two_way import apply_force, two_way_stage
+from wrinkles.two_way import two_way_stage
 
 SUMMED: tuple[str, ...] = ("newton_iterations", "halvings", "substeps")
 """``StepReport`` counts that add up over the steps of a frame."""
@@ -392,9 +392,6 @@ def attach_shell(run: Run, shell: Shell, state: BodyState | None) -> None:
     options = shell.options
     if state is not None:
         restore_shell(shell, checkpoint_stage(state, "shell"))
-        coupling = options.internals.coupling
-        if coupling.mode == "two_way" and coupling.scheme == "explicit":
-            apply_force(shell, run.body)
     output, last = run.scene.output, run.n_frames
     write = (make_writer(shell, run.out, run.comm, lambda f: output.writes_frame(f, last),
                          None if state is None else state.time)

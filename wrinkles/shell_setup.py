@@ -190,7 +190,7 @@ class SolverKeys:
         threads: threads of the element kernels and multigrid products; 0 = the cores of a
             serial run of a large shell, else 1 (:func:`solvers.solver_choice.choose_threads`).
         options: expert mapping of dotted paths into :class:`ShellInternals` (``"newton.shift.
-            growth" = 5``, ``"energy.k_F" = 0``, ``"coupling.scheme" = "explicit"``), checked
+            growth" = 5``, ``"energy.k_F" = 0``, ``"coupling.scheme" = "implicit"``), checked
             like any key; ``wrinkles check`` prints the resolved values.
 
     """
@@ -223,7 +223,7 @@ class ShellInternals:
         embedding: point location tolerances of B.
         clusters: placement method and sizing of the clusters.
         subdivision: levels, scheme and Loop weights.
-        coupling: the two-way iteration (scheme, tolerance, cap, Anderson memory, relaxation).
+        coupling: the two-way scheme (monolithic, or the fixed point: tolerance, cap, memory).
 
     """
 
@@ -379,7 +379,7 @@ class Shell:
         edge_length: mean rest edge length [m].
         gradient_scale: reference gradient norm of the relative tolerance (0 = not yet set).
         facts: set-up numbers for the summary.
-        force: ``(n, 3)`` relaxed penalty force on the target fed back to the body (two-way
+        force: ``(n, 3)`` penalty force ``f`` on the target, ``B^T f`` on the body (two-way
             coupling; zero otherwise).
         coupling: constant part of the implicit coupling term (built on first use,
             :func:`penalty_coupling`).

@@ -166,7 +166,7 @@ def shell_record(shell: Shell, report: ShellSolveReport) -> StageRecord:
 
 
 STATE_ARRAYS: tuple[str, ...] = ("positions", "target", "gradient_scale", "force")
-"""Checkpoint arrays of the shell: x, y, the tolerance reference and the fed-back force."""
+"""Checkpoint arrays of the shell: x, y, the tolerance reference and the penalty force."""
 
 
 def shell_arrays(shell: Shell) -> dict[str, np.ndarray]:
@@ -174,7 +174,8 @@ def shell_arrays(shell: Shell) -> dict[str, np.ndarray]:
 
     The warm start ``x_0 = x + (y_new - y) + eta_k`` needs ``x`` and the previous target
     ``y``; the relative Newton tolerance needs the reference ``gradient_scale``; two-way
-    coupling needs the relaxed force ``force`` (the body's load).
+    coupling keeps the penalty force ``force`` (its share on pinned body nodes counts in the
+    pins' reaction).
     """
     return {"positions": shell.x, "target": shell.y,
             "gradient_scale": np.array([shell.gradient_scale]), "force": shell.force}

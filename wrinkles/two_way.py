@@ -3,8 +3,8 @@
 Remillard & Kry 2013 couple skin and body both ways: the cluster penalty ``k_P ||H (x - y(u))||^2``
 acts on the body too. By default (``coupling.scheme = "monolithic"``) every body step is one
 Newton solve of body and shell together (:class:`CoupledStep`, :mod:`solvers.monolithic`);
-the fixed points iterate body step and shell solve per frame instead
-(:func:`solvers.coupling.coupled_frame`, :func:`solvers.coupling.explicit_frame`). The record
+the fixed point (``"implicit"``, the reference) iterates body step and shell solve per frame
+instead (:func:`solvers.coupling.coupled_frame`). The record
 adds the coupling iterations, the last change (monolithic: the final relative gradient),
 whether it converged, and the penalty's total force on shell and body (equal, since the rows
 of B sum to 1).
@@ -23,7 +23,7 @@ from models.backend import MPI
 from models.coupling import PenaltyCoupling, body_force_function, penalty_force
 from solvers.body import Body
 from solvers.body_newton import EnergyNewton, NewtonResult
-from solvers.coupling import coupled_frame, explicit_frame
+from solvers.coupling import coupled_frame
 from solvers.monolithic import BodyUnknowns, CoupledEnergy
 from solvers.shell_newton import (
     ModifiedNewtonOptions,
@@ -173,56 +173,10 @@ def coupled_force(shell: Shell, body: Body) -> list[float]:
     return [-float(v) for v in body.mesh.comm.allreduce(local, op=MPI.SUM)]
 
 
-def apply_force(shell: Shell, body: Body) -> None:
-    """Make the shell's relaxed force ``shell.force`` the body's nodal load ``B^T f``."""
-    body.set_nodal_load(body_force_function(shell.embedding, shell.force, body.V))
-
-
-def feed_back(shell: Shell, body: Body) -> None:
-    """Relax the penalty force of the current shell into the body's nodal load ``B^T f``."""
-    omega = shell.options.internals.coupling.relaxation
-    op = shell.energy.penalty_operator  # built once (None when k_P = 0: then H, zero force)
-    f = penalty_force(op if op is not None else shell.clusters.H, shell.params.k_P, shell.x,
-                      shell.y)
-    shell.force = (1.0 - omega) * shell.force + omega * f
-    apply_force(shell, body)
-
-
-def explicit_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mapping[str, Any]],
-                   write: Writer) -> Callable[[int], StageRecord]:
-    """Return the stage of the explicit scheme (:func:`solvers.coupling.explicit_frame`)."""
-    options, comm = shell.options.internals.coupling, body.mesh.comm
-
-    def stage(frame: int) -> StageRecord:
-        x_start, y_start = shell.x.copy(), shell.y.copy()
-        repaired = 0
-
-        def solve() -> Any:
-            nonlocal repaired
-            report = solve_shell(shell, target(shell, body), frame, comm)
-            repaired += shell.start_repaired
-            return report
-
-        def reset() -> None:
-            shell.x, shell.y = x_start.copy(), y_start.copy()
-
-        result = explicit_frame(body, options, lambda: body_stage(frame), solve,
-                                lambda: feed_back(shell, body), reset)
-        write(frame, body.t)
-        return {**result.record, **shell_record(shell, result.report),
-                "shell_start_repaired": repaired,
-                **coupling_record(shell, result.iterations, result.change,
-                                  result.change <= options.rtol, body.applied_load().tolist())}
-
-    return stage
-
-
 def two_way_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mapping[str, Any]],
                   write: Writer) -> Callable[[int], StageRecord]:
     """Return the stage of the scene's two-way scheme (implicit: :func:`coupled_frame`)."""
     options, comm = shell.options.internals.coupling, body.mesh.comm
-    if options.scheme == "explicit":
-        return explicit_stage(shell, body, body_stage, write)
     if options.scheme == "monolithic":
         return monolithic_stage(shell, body, body_stage, write)
 
@@ -269,5 +223,5 @@ def monolithic_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mappi
     return stage
 
 
-__all__ = ["CoupledStep", "apply_force", "coupled_force", "coupling_record", "explicit_stage",
-           "feed_back", "monolithic_stage", "penalty_coupling", "two_way_stage"]
+__all__ = ["CoupledStep", "coupled_force", "coupling_record", "monolithic_stage",
+           "penalty_coupling", "two_way_stage"]

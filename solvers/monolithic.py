@@ -42,6 +42,12 @@ from models.backend import MPI
 from models.coupling import penalty_force
 from models.shell.energy import ShellEnergy
 from solvers.body_newton import EnergyNewton
+from solvers.linear import LinearSolverOptions
+
+JOINT_LINEAR = LinearSolverOptions(symmetric="ldlt", matrix_format="sbaij", mumps_blr=False)
+"""Factorisation of the joint augmented system: MUMPS LDL^T of the upper block triangle with
+full-rank fronts (the body and cluster unknowns meet in dense fronts, where block low-rank
+compression does not pay: 11 % less CPU per two-way frame, docs/notes/two-way-coupling.md)."""
 
 
 def gather_vector(vec: Any, comm: MPI.Comm) -> np.ndarray:
@@ -256,5 +262,5 @@ class CoupledEnergy:
         return self._sum([m for m, _, _ in pieces])
 
 
-__all__ = ["BodyUnknowns", "CoupledEnergy", "CoupledEval", "PatternSum", "gather_matrix",
-           "gather_vector"]
+__all__ = ["JOINT_LINEAR", "BodyUnknowns", "CoupledEnergy", "CoupledEval", "PatternSum",
+           "gather_matrix", "gather_vector"]

@@ -24,7 +24,7 @@ from models.coupling import PenaltyCoupling, body_force_function, penalty_force
 from solvers.body import Body
 from solvers.body_newton import EnergyNewton, NewtonResult
 from solvers.coupling import coupled_frame
-from solvers.monolithic import BodyUnknowns, CoupledEnergy
+from solvers.monolithic import JOINT_LINEAR, BodyUnknowns, CoupledEnergy
 from solvers.shell_newton import (
     ModifiedNewtonOptions,
     ShellNewtonSolver,
@@ -51,9 +51,10 @@ class CoupledStep:
     the body's guess (``x_prev + (y(u_0) - y_prev)``, the frame's imperfection on the first
     call of a frame, :func:`wrinkles.shell_stage.admissible_start`), then the shell's Newton
     solver minimises :class:`solvers.monolithic.CoupledEnergy` over shell and body at once
-    (direct linear solves). Only a converged solve moves the shell; a failed one reports
-    failure and the body halves its step. The gradient reference is the largest initial
-    coupled gradient so far (``shell.gradient_scale``, checkpointed).
+    (direct linear solves, :data:`solvers.monolithic.JOINT_LINEAR`). Only a converged solve
+    moves the shell; a failed one reports failure and the body halves its step. The gradient
+    reference is the largest initial coupled gradient so far (``shell.gradient_scale``,
+    checkpointed).
     """
 
     def __init__(self, shell: Shell, body: Body) -> None:
@@ -61,6 +62,7 @@ class CoupledStep:
         self.B = shell.embedding.global_matrix()
         self.options = dataclasses.replace(shell.options.internals.newton,
                                            linear_method="direct",
+                                           augmented_linear=JOINT_LINEAR,
                                            modified=ModifiedNewtonOptions())
         self.solvers: dict[int, tuple[CoupledEnergy, ShellNewtonSolver]] = {}
         self.frame, self.perturb = 0, True

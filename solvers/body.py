@@ -166,7 +166,7 @@ class Body:
         self._u_n, self._v_n, self._a_n, self._u_pred = (self._function(n) for n in
                                                           ("u_n", "v_n", "a_n", "u_pred"))
         self.t = 0.0
-        self._rate = np.zeros_like(self.u.x.array)
+        self.rate = self._function("load_rate")  # du/dt of the last static step
         self._accel_ready = False
         self._inertia = dolfinx.fem.Constant(mesh, 0.0)
         self.gravity = dolfinx.fem.Constant(mesh, np.array(self.options.gravity))
@@ -391,18 +391,21 @@ class Body:
         """
         self._ensure_initial_acceleration()
 
-    def set_state(self, t: float, u: np.ndarray, v: np.ndarray, a: np.ndarray) -> None:
+    def set_state(self, t: float, u: np.ndarray, v: np.ndarray, a: np.ndarray,
+                  rate: np.ndarray | None = None) -> None:
         """Set time and state (e.g. from a checkpoint) and mark the acceleration as valid.
 
         Newmark (beta = 1/4, gamma = 1/2) needs ``a_n`` consistent with ``(u_n, v_n)``: a
         restored ``a`` is used as is instead of being recomputed from ``M a_0 = -dPi/du``, so
-        a restarted run continues exactly like the uninterrupted one.
+        a restarted run continues exactly like the uninterrupted one; so does a static run
+        given the load ``rate`` of its last step (the next step's guess ``u + h rate``).
 
         Args:
             t: Time (load parameter) of the state [s].
             u: Displacement dof values (local array incl. ghosts, layout of ``u.x.array``) [m].
             v: Velocity dof values [m/s].
             a: Acceleration dof values [m/s^2].
+            rate: ``du/dt`` of the last static step [m/s] (``None``: zero).
 
         Raises:
             InputError: an array of the wrong size or with NaN/inf values, or ``t`` not finite.
@@ -410,13 +413,14 @@ class Body:
         """
         if not math.isfinite(t):
             raise InputError(f"set_state: t must be finite, got {t}")
-        for name, f, values in (("u", self.u, u), ("v", self.v, v), ("a", self.a, a)):
+        rate = np.zeros_like(self.rate.x.array) if rate is None else rate
+        for name, f, values in (("u", self.u, u), ("v", self.v, v), ("a", self.a, a),
+                                ("rate", self.rate, rate)):
             arr = np.asarray(values, dtype=float).reshape(-1)
             if arr.shape != f.x.array.shape or not np.all(np.isfinite(arr)):
                 raise InputError(f"set_state: {name} must be {f.x.array.size} finite values")
             f.x.array[:] = arr
             f.x.scatter_forward()
-        self._rate[:] = 0.0
         self.t = float(t)
         self._set_pins(self.t)
         self._accel_ready = True
@@ -481,7 +485,7 @@ class Body:
             if dynamic:
                 self._update_kinematics(h)
             elif h > 0.0:
-                self._rate[:] = (self.u.x.array - self._u_n.x.array) / h
+                self.rate.x.array[:] = (self.u.x.array - self._u_n.x.array) / h
             self.t = t_new
         return result
 
@@ -492,7 +496,7 @@ class Body:
         is inadmissible (``det F <= 0``); a first step uses that directly.
         """
         self._u_n.x.array[:] = self.u.x.array
-        self._set_guess(self.u.x.array + h * self._rate)
+        self._set_guess(self.u.x.array + h * self.rate.x.array)
 
     def _set_guess(self, guess: np.ndarray) -> None:
         """Set ``u = guess`` with the pins applied; ``u_n`` (pins applied) if ``det F <= 0``."""
@@ -554,7 +558,7 @@ class Body:
     def _arrays(self) -> list[np.ndarray]:
         """Return the state arrays (views) that a failed step must restore."""
         fields = (self.u, self.v, self.a, self._u_n, self._v_n, self._a_n, self._u_pred)
-        return [f.x.array for f in fields] + [self._rate]
+        return [f.x.array for f in (*fields, self.rate)]
 
     def snapshot(self) -> _State:
         """Copy of the state arrays and time (to retry a step, or redo it with another load)."""

@@ -73,8 +73,9 @@ def with_arrays(state: BodyState, stage: str, arrays: dict[str, np.ndarray]) -> 
 
 
 def state_functions(body: Body) -> dict[str, Any]:
-    """Return the body's state functions by checkpoint name."""
-    return {"displacement": body.u, "velocity": body.v, "acceleration": body.a}
+    """Return the body's state functions by checkpoint name (``load_rate``: statics' guess)."""
+    return {"displacement": body.u, "velocity": body.v, "acceleration": body.a,
+            "load_rate": body.rate}
 
 
 def _owned_nodes(body: Body) -> tuple[np.ndarray, int]:
@@ -149,6 +150,7 @@ def scatter_state(body: Body, state: BodyState) -> None:
     if worst > MATCH_TOL * scale or len(state.coords) != body.V.dofmap.index_map.size_global:
         raise InputError(f"{CHECKPOINT_NAME}: the checkpoint does not match the scene's mesh "
                          f"({len(state.coords)} stored nodes, node distance {worst:.3e} m)")
-    values = {name: state.fields[name][index].reshape(-1) for name in state_functions(body)}
+    values = {name: state.fields[name][index].reshape(-1) for name in state_functions(body)
+              if name in state.fields}  # no load_rate in checkpoints of earlier versions
     body.set_state(state.time, values["displacement"], values["velocity"],
-                   values["acceleration"])
+                   values["acceleration"], values.get("load_rate"))

@@ -42,6 +42,7 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/shell_kernels.py
 	$(PY) benchmarks/shell_solve.py
+	$(PY) benchmarks/two_way.py
 
 # Regenerate figures, tables and paper/build/paper.md (PAPER_ARGS=--quick for CI; see paper/README.md)
 PAPER_ARGS ?=

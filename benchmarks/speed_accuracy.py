@@ -291,7 +291,7 @@ def other_knobs() -> list[Config]:
     c += [Config("two_way", "coupling", two_way),
           Config("two_way+fixed_point", "coupling",
                  (*two_way, 'shell.solver.options.coupling.scheme="implicit"',
-                  "shell.solver.options.coupling.max_iterations=80"))]
+                  "shell.solver.options.coupling.max_iterations=80", DIRECT))]
     return c + [Config("method=direct", "linear", (DIRECT,)),
                 Config("linear=assembled_mumps", "linear",
                        ('shell.solver.options.energy.penalty_hessian="assembled"',

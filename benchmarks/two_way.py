@@ -4,6 +4,8 @@ Runs, in this process through the product's own path (:func:`wrinkles.runner.pre
 :func:`wrinkles.runner.run_frames`, output files off), one after the other:
 
 * ``one_way``: ``scenes/default.toml`` as shipped (the shell follows the body);
+* ``one_way_direct``: the same with the shell's direct solves, the linear method of the
+  coupled solve (what the coupling itself costs);
 * ``two_way``: ``scenes/two_way_bar.toml`` as shipped (the same scene with the skin acting
   back on the body; the default scheme, one coupled Newton solve per body step,
   :mod:`solvers.monolithic`);
@@ -52,6 +54,7 @@ REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "two_way.json"
 CONFIGS: dict[str, tuple[str, list[str]]] = {
     "one_way": ("scenes/default.toml", []),
+    "one_way_direct": ("scenes/default.toml", ['shell.solver.method="direct"']),
     "two_way": ("scenes/two_way_bar.toml", []),
     "fixed_point": ("scenes/two_way_bar.toml",
                     ['shell.solver.options."coupling.scheme"="implicit"']),
@@ -135,15 +138,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                    metavar="KEY=VALUE", help="scene override applied to every run")
     p.add_argument("--out", type=Path, default=RESULTS)
     args = p.parse_args(argv)
-    names = ["one_way", "two_way"] + (["fixed_point"] if args.fixed_point else [])
+    names = ["one_way", "one_way_direct", "two_way"] + (["fixed_point"] if args.fixed_point
+                                                          else [])
     rows: dict[str, dict[str, Any]] = {}
     for name in names:
         scene, overrides = CONFIGS[name]
         print(f"running {name}: {scene} {' '.join(overrides)}", flush=True)
         rows[name] = run_config(scene, overrides, args.frames, args.overrides)
     rows["one_way"]["wavelength_m"] = wrinkle_wavelength(rows["one_way"]["shell"])
-    for name in names[1:]:
+    for name in names[2:]:
         rows[name]["effect"] = effect(rows["one_way"], rows[name])
+    rows["one_way_direct"]["wavelength_m"] = wrinkle_wavelength(rows["one_way_direct"]["shell"])
     text = table(rows)
     print(text)
     doc = {"machine": {"node": platform.node(), "cpus": os.cpu_count(),

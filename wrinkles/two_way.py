@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from meshes.errors import SolverError
 from models.backend import MPI
 from models.coupling import PenaltyCoupling, body_force_function, penalty_force
 from solvers.body import Body
@@ -93,9 +94,20 @@ class CoupledStep:
         return np.vstack([x0, u0.reshape(-1, 3)]), u0
 
     def __call__(self, problem: EnergyNewton) -> NewtonResult:
-        """Solve the step coupled; leave ``u`` (and the shell) at the solution on success."""
+        """Solve the step coupled; leave ``u`` (and the shell) at the solution on success.
+
+        A guess with ``det F <= 0`` somewhere (a pin moved across its elements) or a shell
+        start that cannot be made admissible is a failed solve, like the body's own: the body
+        halves its step.
+        """
         energy, solver = self._solver(problem)
-        z0, u0 = self._start(energy)
+        min_det = problem.min_det_f()
+        if not min_det > 0.0:
+            return NewtonResult(False, 0, 0, math.nan, math.inf, min_det)
+        try:
+            z0, u0 = self._start(energy)
+        except SolverError:
+            return NewtonResult(False, 0, 0, math.nan, math.inf, min_det)
         g0 = float(np.linalg.norm(np.asarray(energy.evaluate(z0, order=1).grad)))
         self.shell.gradient_scale = max(self.shell.gradient_scale, g0)
         solver.options = dataclasses.replace(self.options,

@@ -9,9 +9,11 @@ and, since ``dy/du_q = B``, on the body's degrees of freedom with the nodal forc
 ``F = B^T f`` (``add_transpose_to_function``). Because every row of B sums to 1, the total
 force is conserved: ``sum_j F_j = sum_i f_i`` (per component).
 
-The body minimises an energy, so a nodal force enters as the potential ``-F . u``:
+The body minimises an energy, so a given nodal force enters as the potential ``-F . u``:
 :meth:`solvers.body.Body.set_nodal_load` (``-int g . u dX`` with ``M g = F``); the total force
-actually applied is :meth:`solvers.body.Body.applied_load`, ``int g dX``.
+actually applied is :meth:`solvers.body.Body.applied_load`, ``int g dX``. Two-way coupling
+does not lag it as a load: the penalty is part of the coupled energy (:mod:`solvers.monolithic`)
+or, in the fixed point, of the body's energy (:class:`PenaltyCoupling`).
 """
 
 from __future__ import annotations

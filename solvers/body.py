@@ -15,8 +15,8 @@ with, for a step of length h from (u_n, v_n, a_n):
 The stationarity of Pi is the time-discrete momentum balance, so the residual and the
 Jacobian are ``ufl.derivative`` of Pi and the Newton line search can evaluate Pi itself.
 
-The nodal load ``F`` (zero unless :meth:`Body.set_nodal_load` sets it, e.g. the embedded
-shell's penalty force ``B^T f`` in two-way coupling, :mod:`models.coupling`) is written in UFL
+The nodal load ``F`` (zero unless :meth:`Body.set_nodal_load` sets it, e.g. a given force
+field ``B^T f`` on the embedded shell's points, :mod:`models.coupling`) is written in UFL
 as ``-int g.u dX`` with ``g`` the L2 Riesz representative of ``F`` (``M g = F``, M the vector
 mass matrix with the energy's quadrature, exact for P1 and P2), so its first variation is
 exactly ``-F``; it is part of the ``gravity`` (external load) energy term.

@@ -38,6 +38,9 @@ from wrinkles.provenance import version_text
 
 AGREE_SECONDS = 10.0
 """How long a failing rank waits for the other ranks to fail too before ``MPI_Abort``."""
+ABORT_GRACE_SECONDS: float = 0.5
+"""Pause between the failing rank's flushed message and ``MPI_Abort``: the abort kills the job
+at once, and a line still in mpiexec's forwarding is lost otherwise."""
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -233,6 +236,8 @@ def fail_collectively(exc: BaseException) -> int:
         if time.monotonic() > deadline:
             print(f"[rank {comm.rank}] ", end="", file=sys.stderr)
             report(exc)
+            sys.stderr.flush()
+            time.sleep(ABORT_GRACE_SECONDS)  # let mpiexec forward the line before the kill
             comm.Abort(code)
         time.sleep(0.01)
     if comm.rank == 0:

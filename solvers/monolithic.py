@@ -84,9 +84,7 @@ class BodyUnknowns:
         self.problem = problem
         self.u = problem.u
         self.comm = self.u.function_space.mesh.comm
-        vec = self.u.x.petsc_vec
-        self.owned = vec.getOwnershipRange()
-        self.size = int(vec.getSize())
+        self.owned = self.u.x.petsc_vec.getOwnershipRange()
         self.fixed = np.concatenate(self.comm.allgather(problem.dirichlet_rows)).astype(np.int64)
 
     def get(self) -> np.ndarray:
@@ -130,7 +128,6 @@ class PatternSum:
     def __init__(self, shape: tuple[int, int],
                  pieces: list[tuple[sp.csr_matrix, int, int]]) -> None:
         self.shape = shape
-        self.offsets = [(r, c) for _, r, c in pieces]
         coos = [self._placed(m, r, c) for m, r, c in pieces]
         rows = np.concatenate([c.row for c in coos])
         cols = np.concatenate([c.col for c in coos])

@@ -27,7 +27,12 @@ from models.embedding.embedding import apply_to_function
 from models.shell.energy import ShellEnergy
 from models.shell.rest import vertex_normals
 from solvers.body import Body
-from solvers.shell_newton import ShellSolveError, ShellSolveReport
+from solvers.shell_newton import (
+    ShellNewtonOptions,
+    ShellNewtonSolver,
+    ShellSolveError,
+    ShellSolveReport,
+)
 from wrinkles.shell_output import Writer
 from wrinkles.shell_setup import Shell
 
@@ -48,14 +53,24 @@ def imperfection(shell: Shell, frame: int) -> np.ndarray:
     return amp * rng.standard_normal((shell.x.shape[0], 1)) * shell.normals
 
 
+def scale_tolerance(shell: Shell, solver: ShellNewtonSolver, x0: np.ndarray,
+                    options: ShellNewtonOptions) -> None:
+    """Give ``solver`` the options with the largest initial gradient so far as reference.
+
+    ``shell.gradient_scale`` (checkpointed) becomes ``max(itself, ||grad E(x0)||)`` and the
+    relative tolerance of the coming solve refers to it, so a warm start that is already good
+    is not driven to an over-tight tolerance. Nothing changes when ``options`` fix a scale.
+    """
+    if options.gradient_scale != 0.0:
+        return
+    g0 = float(np.linalg.norm(np.asarray(solver.energy.evaluate(x0, order=1).grad)))
+    shell.gradient_scale = max(shell.gradient_scale, g0)
+    solver.options = dataclasses.replace(options, gradient_scale=shell.gradient_scale or 1.0)
+
+
 def _minimize(shell: Shell, x0: np.ndarray) -> tuple[np.ndarray, ShellSolveReport]:
     """Set the tolerance scale and minimise; ShellSolveError becomes a plain SolverError."""
-    if shell.options.internals.newton.gradient_scale == 0.0:
-        ev = shell.energy.evaluate(x0, order=1)
-        g0 = float(np.linalg.norm(np.asarray(ev.grad)))
-        shell.gradient_scale = max(shell.gradient_scale, g0)
-        shell.solver.options = dataclasses.replace(shell.options.internals.newton,
-                                                   gradient_scale=shell.gradient_scale or 1.0)
+    scale_tolerance(shell, shell.solver, x0, shell.options.internals.newton)
     try:
         return shell.solver.minimize(x0)
     except ShellSolveError as exc:
@@ -115,6 +130,20 @@ def admissible_start(energy: ShellEnergy, x0: np.ndarray, anchor: np.ndarray
                       f"face?)")
 
 
+def warm_start(shell: Shell, y: np.ndarray, frame: int, perturb: bool = True) -> np.ndarray:
+    """Move the target to ``y``; return the warm start ``x_prev + (y - y_prev) + eta_k``.
+
+    ``eta_k`` only when ``perturb``; a start with a face turned over against the new target's
+    normals is repaired (:func:`admissible_start`; ``shell.start_repaired`` counts the
+    vertices moved).
+    """
+    eta = imperfection(shell, frame) if perturb else 0.0
+    x0 = shell.x + (y - shell.y) + eta
+    shell.energy.set_target(y)
+    x0, shell.start_repaired = admissible_start(shell.energy, x0, y + eta)
+    return x0
+
+
 def solve_shell(shell: Shell, y: np.ndarray, frame: int, comm: MPI.Comm,
                 perturb: bool = True) -> ShellSolveReport:
     """Move the target to ``y``, warm-start, minimise, take rank 0's x (collective).
@@ -128,11 +157,7 @@ def solve_shell(shell: Shell, y: np.ndarray, frame: int, comm: MPI.Comm,
     repaired first (:func:`admissible_start`; ``shell.start_repaired`` counts the vertices
     moved).
     """
-    eta = imperfection(shell, frame) if perturb else 0.0
-    x0 = shell.x + (y - shell.y) + eta
-    shell.energy.set_target(y)
-    x0, shell.start_repaired = admissible_start(shell.energy, x0, y + eta)
-    x, report = _minimize(shell, x0)
+    x, report = _minimize(shell, warm_start(shell, y, frame, perturb))
     shell.x, shell.y = np.asarray(comm.bcast(x, root=0)), y
     return report
 
@@ -210,4 +235,5 @@ def one_way_stage(shell: Shell, body: Body, write: Writer) -> Callable[[int], St
 
 
 __all__ = ["StageRecord", "admissible_start", "deviation", "imperfection", "one_way_stage",
-           "restore_shell", "shell_arrays", "shell_record", "solve_shell", "target"]
+           "restore_shell", "scale_tolerance", "shell_arrays", "shell_record", "solve_shell",
+           "target", "warm_start"]

@@ -36,11 +36,11 @@ from wrinkles.shell_output import Writer
 from wrinkles.shell_setup import Shell
 from wrinkles.shell_stage import (
     StageRecord,
-    admissible_start,
-    imperfection,
+    scale_tolerance,
     shell_record,
     solve_shell,
     target,
+    warm_start,
 )
 
 
@@ -50,7 +50,7 @@ class CoupledStep:
     Installed by :meth:`solvers.body.Body.use_solve`, so the body's step control (pins,
     inertia, halvings, rigid balls) is unchanged. Per call: the shell's warm start moves with
     the body's guess (``x_prev + (y(u_0) - y_prev)``, the frame's imperfection on the first
-    call of a frame, :func:`wrinkles.shell_stage.admissible_start`), then the shell's Newton
+    call of a frame, :func:`wrinkles.shell_stage.warm_start`), then the shell's Newton
     solver minimises :class:`solvers.monolithic.CoupledEnergy` over shell and body at once
     (direct linear solves, :data:`solvers.monolithic.JOINT_LINEAR`). Only a converged solve
     moves the shell; a failed one reports failure and the body halves its step. The gradient
@@ -82,16 +82,11 @@ class CoupledStep:
             self.solvers[key] = (energy, ShellNewtonSolver(energy, self.options))
         return self.solvers[key]
 
-    def _start(self, energy: CoupledEnergy) -> tuple[np.ndarray, np.ndarray]:
-        """Return the warm start ``z_0 = (x_0, u_0)`` and ``u_0`` (the body's guess, flat)."""
-        shell = self.shell
-        u0 = energy.body.get()
-        y0 = energy.target(u0)
-        eta = imperfection(shell, self.frame) if self.perturb else 0.0
-        shell.energy.set_target(y0)
-        x0, shell.start_repaired = admissible_start(shell.energy,
-                                                    shell.x + (y0 - shell.y) + eta, y0 + eta)
-        return np.vstack([x0, u0.reshape(-1, 3)]), u0
+    def _start(self, energy: CoupledEnergy) -> np.ndarray:
+        """Return the warm start ``z_0 = (x_0, u_0)``, ``u_0`` the body's guess."""
+        u0 = energy.body.get().reshape(-1, 3)
+        x0 = warm_start(self.shell, energy.target(u0), self.frame, self.perturb)
+        return np.vstack([x0, u0])
 
     def __call__(self, problem: EnergyNewton) -> NewtonResult:
         """Solve the step coupled; leave ``u`` (and the shell) at the solution on success.
@@ -105,20 +100,16 @@ class CoupledStep:
         if not min_det > 0.0:
             return NewtonResult(False, 0, 0, math.nan, math.inf, min_det)
         try:
-            z0, u0 = self._start(energy)
+            z0 = self._start(energy)
         except SolverError:
             return NewtonResult(False, 0, 0, math.nan, math.inf, min_det)
-        g0 = float(np.linalg.norm(np.asarray(energy.evaluate(z0, order=1).grad)))
-        self.shell.gradient_scale = max(self.shell.gradient_scale, g0)
-        solver.options = dataclasses.replace(self.options,
-                                             gradient_scale=self.shell.gradient_scale or 1.0)
+        scale_tolerance(self.shell, solver, z0, self.options)
         try:
             z, report = solver.minimize(z0)
         except ShellSolveError as exc:
             z, report = None, exc.report
         self.reports.append(report)
-        if z is None or not report.converged:
-            energy.body.set(u0)
+        if z is None or not report.converged:  # the body restores its state and halves
             return NewtonResult(False, -1, report.iterations, report.grad_norm, math.inf,
                                 problem.min_det_f())
         x, u = energy.split(self.body.mesh.comm.bcast(z, root=0))

@@ -51,9 +51,10 @@ def test_transpose_embedding_conserves_total_force(runs, rng):
 
 def test_two_way_converges_and_balances_the_forces(runs):
     """The coupled frame converges in at most 8 Newton iterations (measured 5) to the relative
-    gradient 1e-8; the recorded shell force is the penalty force of the final shell, and its
-    total on the body equals its total on the shell to 1e-10 of the largest force (rows of B
-    sum to 1)."""
+    gradient 1e-8. The massless shell is in equilibrium, so the penalty force on it sums to
+    at most ``sqrt(n)`` times the gradient tolerance (its elastic forces sum to zero; measured
+    1.2e-13 N against 1.2e-5); its total on the body equals its total on the shell to 1e-10
+    of the largest force (rows of B sum to 1)."""
     run = runs["two_way"]
     rec = run.records[-1].details
     shell = run.shell
@@ -64,7 +65,9 @@ def test_two_way_converges_and_balances_the_forces(runs):
           "force on shell", rec["coupling_force_shell"], "on body", rec["coupling_force_body"])
     assert rec["coupling_converged"] and rec["coupling_change"] <= 1e-8
     assert rec["coupling_iterations"] <= 8
-    assert np.abs(shell.force - f).max() <= 1e-12 * scale
+    balance = np.sqrt(shell.x.shape[0]) * rec["shell_tolerance"]
+    print("net penalty force", np.abs(f.sum(axis=0)).max(), "bound", balance)
+    assert np.abs(f.sum(axis=0)).max() <= balance
     assert np.allclose(rec["coupling_force_shell"], rec["coupling_force_body"], rtol=0,
                        atol=1e-10 * scale)
 

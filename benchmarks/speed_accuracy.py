@@ -95,14 +95,15 @@ from wrinkles.runner import prepare, run_frames
 from wrinkles.scene import load_scene
 
 RESULTS = Path(__file__).resolve().parent / "results"
-QUIET = ["output.render=false", "output.xdmf=false", "output.checkpoint=false"]
-"""Overrides of every run: no output files, no rendering (timing the solve, not the disk)."""
+QUIET = ["output.render=false", "output.xdmf=false"]
+"""Overrides of every run: no XDMF files, no rendering (timing the solve, not the disk; the
+summary and the checkpoint are always written)."""
 
 QUICK_BASE = ["mesh.params.h=0.05", "time.frames=2", "body.dt=0.5",
               "shell.solver.max_iterations=200"]
 """``--quick``: coarse body mesh, 2 frames of the same total load (tiny, seconds)."""
 
-REFERENCE = ["body.degree=2", "shell.solver.hessian=\"exact\"",
+REFERENCE = ["body.degree=2", "shell.solver.options.energy.hessian_mode=\"exact\"",
              "shell.solver.options.newton.far_hessian=\"\"", "shell.solver.rtol=1e-8",
              "shell.solver.max_iterations=500", "shell.solver.method=\"direct\""]
 """The reference's settings besides its subdivision level (exact Newton: direct solves)."""
@@ -142,7 +143,7 @@ class SceneFacts:
 
     Attributes:
         levels: shell subdivision levels.
-        hessian: shell Hessian mode (``shell.solver.hessian``).
+        hessian: shell Hessian mode (``shell.solver.options.energy.hessian_mode``).
         far_hessian: PSD mode used far from the minimum ("" for none).
         rtol: shell Newton relative tolerance.
         h: body mesh size of the builder [m]; ``None`` for a mesh file.
@@ -172,22 +173,22 @@ def scene_facts(scene_path: Path, base: list[str]) -> SceneFacts:
         raise InputError(f"{scene_path}: the speed/accuracy sweep needs a [shell] table")
     h = scene.mesh.params.get("h") if scene.mesh.builder else None
     return SceneFacts(levels=scene.shell.subdivision.levels,
-                      hessian=scene.shell.solver.hessian,
+                      hessian=scene.shell.internals.energy.hessian_mode,
                       far_hessian=scene.shell.internals.newton.far_hessian,
                       rtol=scene.shell.solver.rtol,
                       h=None if h is None else float(h),
                       dynamic=scene.body.dynamics != "static", dt=scene.body.dt,
                       steps_per_frame=scene.time.steps_per_frame,
-                      frames=scene.time.n_frames(scene.body.dt))
+                      frames=scene.time.frames)
 
 
+HESSIAN_MODE = "shell.solver.options.energy.hessian_mode"
+FAR_HESSIAN = "shell.solver.options.newton.far_hessian"
 HESSIANS: dict[str, tuple[str, ...]] = {
-    "exact": ('shell.solver.hessian="exact"', 'shell.solver.options.newton.far_hessian=""'),
-    "gauss_newton": ('shell.solver.hessian="gauss_newton"',
-                     'shell.solver.options.newton.far_hessian=""'),
-    "mixed": ('shell.solver.hessian="exact"',
-              'shell.solver.options.newton.far_hessian="projected"'),
-    "projected": ('shell.solver.hessian="projected"', 'shell.solver.options.newton.far_hessian=""'),
+    "exact": (f'{HESSIAN_MODE}="exact"', f'{FAR_HESSIAN}=""'),
+    "gauss_newton": (f'{HESSIAN_MODE}="gauss_newton"', f'{FAR_HESSIAN}=""'),
+    "mixed": (f'{HESSIAN_MODE}="exact"', f'{FAR_HESSIAN}="projected"'),
+    "projected": (f'{HESSIAN_MODE}="projected"', f'{FAR_HESSIAN}=""'),
 }
 """Hessian modes of the sweep: mixed = projected far from the minimum, then exact."""
 

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from meshes.errors import InputError
-from models.contact import ContactOptions, vector3
+from models.contact import ContactOptions, penalty_stiffness, vector3
 
 DYNAMICS: tuple[str, ...] = ("static", "implicit_euler", "newmark")
 NEWMARK_BETA: float = 0.25
@@ -24,66 +24,49 @@ NEWMARK_GAMMA: float = 0.5
 class PinSpec:
     """A set of nodes whose displacement components are prescribed.
 
-    A node at reference position ``X`` is selected by a box when
-    ``box_min - tol <= X <= box_max + tol`` componentwise, by a plane when
-    ``|(X - point).normal| <= tol``. Its components ``components`` are held at
+    A node at reference position ``X`` is selected by the box ``box = (lo, hi)`` when
+    ``lo - tol <= X <= hi + tol`` componentwise; without a box, by the plane through ``point``
+    with ``normal`` when ``|(X - point).normal| <= tol``. Its components ``components`` follow
+    the rigid motion that starts at rest,
 
-        u(X, t) = (R(phi(t)) - I)(X - center) + value + velocity t,   phi = angle + omega t,
+        u(X, t) = (R(|w| t) - I)(X - point) + velocity t,
 
-    a rigid motion: ``R(phi) = I + sin(phi) K + (1 - cos(phi)) K^2`` is the rotation by
-    ``phi`` about the unit ``axis`` through ``center`` (Rodrigues; ``K a = axis x a``). With
-    ``angle = omega = 0`` (the default) the pin is a pure translation.
+    with ``R(phi) = I + sin(phi) K + (1 - cos(phi)) K^2`` the rotation by ``phi`` about the unit
+    axis ``a = w / |w|`` through ``point`` (Rodrigues; ``K v = a x v``), ``w`` the angular
+    velocity vector. With ``w = 0`` (the default) the pin is a pure translation, with
+    ``velocity = 0`` too a clamp. In statics ``t`` is the load parameter.
 
     Attributes:
-        kind: ``"box"`` or ``"plane"``.
-        box_min: Lower corner of the box [m].
-        box_max: Upper corner of the box [m].
-        point: A point of the plane [m].
+        box: Lower and upper corners of the selection box [m]; ``None`` selects by the plane.
+        point: A point of the plane, and of the rotation axis [m].
         normal: Normal of the plane (normalised here) [-].
         tol: Selection tolerance [m].
         components: Held displacement components (0 = x, 1 = y, 2 = z).
-        value: Prescribed displacement at t = 0 [m].
-        velocity: Prescribed velocity of the pinned nodes [m/s] (per unit load parameter in
-            statics).
-        axis: Rotation axis (normalised here; non-zero when the pin rotates) [-].
-        center: A point of the rotation axis [m].
-        angle: Rotation angle at t = 0 [rad].
-        angular_velocity: Angular velocity ``omega`` about ``axis`` [rad/s] (per unit load
-            parameter in statics); right-hand rule.
+        velocity: Velocity of the pinned nodes [m/s] (per unit load parameter in statics).
+        angular_velocity: Angular velocity vector ``w`` [rad/s] (per unit load parameter in
+            statics); right-hand rule about ``w / |w|``.
 
     """
 
-    kind: str = "box"
-    box_min: tuple[float, float, float] = (-math.inf, -math.inf, -math.inf)
-    box_max: tuple[float, float, float] = (math.inf, math.inf, math.inf)
+    box: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     point: tuple[float, float, float] = (0.0, 0.0, 0.0)
     normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
     tol: float = 1.0e-8
     components: tuple[int, ...] = (0, 1, 2)
-    value: tuple[float, float, float] = (0.0, 0.0, 0.0)
     velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    angle: float = 0.0
-    angular_velocity: float = 0.0
+    angular_velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
-        if self.kind not in ("box", "plane"):
-            raise InputError(f"pin.kind must be 'box' or 'plane', got {self.kind!r}")
-        for name in ("box_min", "box_max"):
-            arr = np.asarray(getattr(self, name), dtype=float).reshape(-1)
-            if arr.shape != (3,) or np.any(np.isnan(arr)):
-                raise InputError(f"pin.{name} must be a 3-vector, got {getattr(self, name)!r}")
-            object.__setattr__(self, name, tuple(float(a) for a in arr))
-        for name in ("point", "normal", "value", "velocity", "axis", "center"):
+        if self.box is not None:
+            arr = np.asarray(self.box, dtype=float)
+            if arr.shape != (2, 3) or np.any(np.isnan(arr)) or np.any(arr[0] > arr[1]):
+                raise InputError(f"pin.box must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] "
+                                 f"with min <= max, got {self.box!r}")
+            object.__setattr__(self, "box", (tuple(float(a) for a in arr[0]),
+                                             tuple(float(a) for a in arr[1])))
+        for name in ("point", "normal", "velocity", "angular_velocity"):
             object.__setattr__(self, name, vector3(f"pin.{name}", getattr(self, name)))
-        for name in ("angle", "angular_velocity"):
-            if not math.isfinite(float(getattr(self, name))):
-                raise InputError(f"pin.{name} must be finite, got {getattr(self, name)!r}")
-            object.__setattr__(self, name, float(getattr(self, name)))
-        if self.rotates and np.linalg.norm(self.axis) == 0.0:
-            raise InputError("pin.axis must be non-zero for a rotating pin")
-        if self.kind == "plane" and np.linalg.norm(self.normal) == 0.0:
+        if self.box is None and np.linalg.norm(self.normal) == 0.0:
             raise InputError("pin.normal must be non-zero")
         if not (math.isfinite(self.tol) and self.tol >= 0.0):
             raise InputError(f"pin.tol must be >= 0, got {self.tol}")
@@ -93,33 +76,41 @@ class PinSpec:
                              f"{self.components!r}")
         object.__setattr__(self, "components", comps)
 
+    @property
+    def kind(self) -> str:
+        """``"box"`` or ``"plane"``: how the pin selects its nodes."""
+        return "plane" if self.box is None else "box"
+
     def select(self, X: np.ndarray) -> np.ndarray:
         """Boolean mask of the rows of ``X`` ((n, 3) reference positions) that are pinned."""
-        if self.kind == "plane":
+        if self.box is None:
             n = np.asarray(self.normal) / np.linalg.norm(self.normal)
             return np.abs((X - np.asarray(self.point)) @ n) <= self.tol
-        lo, hi = np.asarray(self.box_min) - self.tol, np.asarray(self.box_max) + self.tol
+        lo, hi = np.asarray(self.box[0]) - self.tol, np.asarray(self.box[1]) + self.tol
         return np.all((X >= lo) & (X <= hi), axis=1)
 
     def displacement(self, t: float) -> np.ndarray:
-        """Prescribed displacement ``value + velocity * t`` [m]."""
-        return np.asarray(self.value) + np.asarray(self.velocity) * t
+        """Prescribed translation ``velocity * t`` [m]."""
+        return np.asarray(self.velocity) * t
 
     @property
     def rotates(self) -> bool:
-        """True when the pin prescribes a rotation (``angle`` or ``angular_velocity`` != 0)."""
-        return self.angle != 0.0 or self.angular_velocity != 0.0
+        """True when the pin prescribes a rotation (``angular_velocity`` != 0)."""
+        return bool(np.any(np.asarray(self.angular_velocity) != 0.0))
 
     def rotation(self, t: float) -> np.ndarray:
-        """Rotation matrix ``R(angle + omega t)`` about ``axis`` (Rodrigues), (3, 3)."""
-        a = np.asarray(self.axis) / np.linalg.norm(self.axis)
-        phi = self.angle + self.angular_velocity * t
+        """Rotation matrix ``R(|w| t)`` about ``w / |w|`` (Rodrigues), (3, 3)."""
+        w = np.asarray(self.angular_velocity)
+        rate = float(np.linalg.norm(w))
+        if rate == 0.0:
+            return np.eye(3)
+        a, phi = w / rate, rate * t
         K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
         return np.eye(3) + math.sin(phi) * K + (1.0 - math.cos(phi)) * (K @ K)
 
     def displacement_at(self, X: np.ndarray, t: float) -> np.ndarray:
-        """Prescribed displacement ``(R - I)(X - center) + value + velocity t`` of rows X [m]."""
-        arm = np.asarray(X, dtype=float).reshape(-1, 3) - np.asarray(self.center)
+        """Prescribed displacement ``(R - I)(X - point) + velocity t`` of rows X [m]."""
+        arm = np.asarray(X, dtype=float).reshape(-1, 3) - np.asarray(self.point)
         return arm @ (self.rotation(t) - np.eye(3)).T + self.displacement(t)
 
 
@@ -134,7 +125,9 @@ class BodyOptions:
         gravity: Gravitational acceleration [m/s^2].
         pins: Prescribed-displacement sets.
         contacts: Rigid obstacles with penalty contact.
-        quadrature_degree: Degree of the volume quadrature; ``None`` means ``2 * degree``.
+        contact_stiffness: Penalty stiffness of every contact of the body (obstacles and rigid
+            balls) [Pa/m]; ``None`` means ``100 E / h_min``
+            (:func:`models.contact.penalty_stiffness`).
 
     """
 
@@ -144,7 +137,7 @@ class BodyOptions:
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
     pins: tuple[PinSpec, ...] = ()
     contacts: tuple[ContactOptions, ...] = ()
-    quadrature_degree: int | None = None
+    contact_stiffness: float | None = None
 
     def __post_init__(self) -> None:
         if self.degree not in (1, 2):
@@ -157,14 +150,17 @@ class BodyOptions:
         object.__setattr__(self, "pins", tuple(_as(PinSpec, p) for p in self.pins))
         object.__setattr__(self, "contacts", tuple(_as(ContactOptions, c)
                                                    for c in self.contacts))
-        if self.quadrature_degree is not None and self.quadrature_degree < 1:
-            raise InputError(f"body.quadrature_degree must be >= 1, got "
-                             f"{self.quadrature_degree}")
+        if self.contact_stiffness is not None:
+            penalty_stiffness(self.contact_stiffness, 1.0, 1.0)  # validates
 
     @property
     def qdegree(self) -> int:
-        """The volume quadrature degree in use."""
-        return self.quadrature_degree or 2 * self.degree
+        """Degree of the volume quadrature, ``2 * degree``.
+
+        Exact for the mass matrix and the linearised stiffness of P1 and P2; the energy, its
+        Jacobian and the det F checks share it.
+        """
+        return 2 * self.degree
 
 
 def _as(cls: type, value: Any) -> Any:

@@ -14,9 +14,9 @@ Gap functions (``n`` unit normal pointing out of the obstacle):
     plane through ``p``:            g = (x - p).n,           grad g = n
     sphere of centre c, radius r:   g = |x - c| - r,         grad g = (x - c)/|x - c|
 
-The penalty stiffness ``k`` [Pa/m] defaults to ``stiffness_factor * E / h`` with ``h`` the
-smallest cell diameter of the mesh, so the penetration under a pressure ``p`` is
-``p h / (stiffness_factor E)``, a small fraction of a cell.
+The penalty stiffness ``k`` [Pa/m] defaults to ``100 E / h`` with ``h`` the smallest cell
+diameter of the mesh, so the penetration under a pressure ``p`` is ``p h / (100 E)``, a small
+fraction of a cell.
 """
 
 from __future__ import annotations
@@ -31,6 +31,13 @@ from meshes.errors import InputError
 from models.backend import MPI, dolfinx, ufl
 
 OBSTACLES: tuple[str, ...] = ("plane", "sphere")
+"""Obstacle shapes."""
+FACET_QUADRATURE: dict[str, int] = {"plane": 4, "sphere": 6}
+"""Facet quadrature degree of the penalty per obstacle: the integrand has a kink at g = 0, so
+more points than the polynomial degree help; a curved obstacle's dent is narrower, so more
+points keep the penetration between them small."""
+DEFAULT_STIFFNESS_FACTOR: float = 100.0
+"""Default penalty stiffness in units of ``E / h_min`` (module docstring)."""
 
 
 def vector3(name: str, value: Any) -> tuple[float, float, float]:
@@ -45,35 +52,27 @@ def vector3(name: str, value: Any) -> tuple[float, float, float]:
 class ContactOptions:
     """A rigid obstacle held off the body by a penalty energy.
 
+    The facet quadrature has :data:`FACET_QUADRATURE` points per obstacle shape, the penalty
+    stiffness is the body's (``body.contact_stiffness``, :func:`penalty_stiffness`).
+
     Attributes:
         obstacle: ``"plane"`` (ground) or ``"sphere"``.
-        point: A point of the plane [m] (plane only).
+        point: A point of the plane, or the centre of the sphere at t = 0 [m]
+            (``Body.set_sphere_center`` moves a sphere between steps).
         normal: Normal of the plane pointing to the free side (normalised here) [-].
-        center: Centre of the sphere at t = 0 [m] (sphere only; ``Body.set_sphere_center``
-            moves it between steps).
-        radius: Radius of the sphere [m] (> 0 for a sphere).
-        stiffness: Penalty stiffness ``k`` [Pa/m]; ``None`` means
-            ``stiffness_factor * E / h_min``.
-        stiffness_factor: Scale of the default stiffness [-].
-        quadrature_degree: Degree of the facet quadrature of the penalty (the integrand has a
-            kink at g = 0, so more points than the polynomial degree help).
+        radius: Radius of the sphere [m] (> 0; sphere only).
 
     """
 
     obstacle: str = "plane"
     point: tuple[float, float, float] = (0.0, 0.0, 0.0)
     normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
     radius: float = 1.0
-    stiffness: float | None = None
-    stiffness_factor: float = 100.0
-    quadrature_degree: int = 4
 
     def __post_init__(self) -> None:
         if self.obstacle not in OBSTACLES:
             raise InputError(f"contact.obstacle must be one of {OBSTACLES}, got {self.obstacle!r}")
         object.__setattr__(self, "point", vector3("contact.point", self.point))
-        object.__setattr__(self, "center", vector3("contact.center", self.center))
         normal = np.asarray(vector3("contact.normal", self.normal))
         if np.linalg.norm(normal) == 0.0:
             raise InputError("contact.normal must be non-zero")
@@ -81,14 +80,25 @@ class ContactOptions:
                                                     normal / np.linalg.norm(normal)))
         if not (math.isfinite(self.radius) and self.radius > 0.0):
             raise InputError(f"contact.radius must be > 0, got {self.radius}")
-        if self.stiffness is not None and not (math.isfinite(self.stiffness)
-                                               and self.stiffness > 0.0):
-            raise InputError(f"contact.stiffness must be > 0, got {self.stiffness}")
-        if not (math.isfinite(self.stiffness_factor) and self.stiffness_factor > 0.0):
-            raise InputError(f"contact.stiffness_factor must be > 0, got {self.stiffness_factor}")
-        if self.quadrature_degree < 1:
-            raise InputError(f"contact.quadrature_degree must be >= 1, got "
-                             f"{self.quadrature_degree}")
+
+    @property
+    def quadrature_degree(self) -> int:
+        """Degree of the facet quadrature of the penalty (:data:`FACET_QUADRATURE`)."""
+        return FACET_QUADRATURE[self.obstacle]
+
+
+def penalty_stiffness(stiffness: float | None, young: float, h_min: float) -> float:
+    """Penalty stiffness ``k`` [Pa/m]: ``stiffness``, or ``DEFAULT_STIFFNESS_FACTOR E / h_min``.
+
+    Raises:
+        InputError: a given ``stiffness`` that is not finite and > 0.
+
+    """
+    if stiffness is None:
+        return DEFAULT_STIFFNESS_FACTOR * young / h_min
+    if not (math.isfinite(stiffness) and stiffness > 0.0):
+        raise InputError(f"body.contact_stiffness must be > 0, got {stiffness}")
+    return float(stiffness)
 
 
 def min_cell_size(mesh: Any) -> float:
@@ -105,17 +115,16 @@ class PenaltyContact:
     Args:
         options: The obstacle.
         mesh: The body's mesh.
-        young: Young's modulus of the body [Pa] (scales the default stiffness).
+        stiffness: Penalty stiffness k [Pa/m] (:func:`penalty_stiffness`).
 
     """
 
-    def __init__(self, options: ContactOptions, mesh: Any, young: float) -> None:
+    def __init__(self, options: ContactOptions, mesh: Any, stiffness: float) -> None:
         self.options = options
-        k = options.stiffness or options.stiffness_factor * young / min_cell_size(mesh)
-        self.stiffness = dolfinx.fem.Constant(mesh, float(k))
+        self.stiffness = dolfinx.fem.Constant(mesh, float(stiffness))
         self.point = dolfinx.fem.Constant(mesh, np.array(options.point))
         self.normal = dolfinx.fem.Constant(mesh, np.array(options.normal))
-        self.center = dolfinx.fem.Constant(mesh, np.array(options.center))
+        self.center = dolfinx.fem.Constant(mesh, np.array(options.point))
         self.radius = dolfinx.fem.Constant(mesh, float(options.radius))
         self.ds = ufl.Measure("ds", domain=mesh,
                               metadata={"quadrature_degree": options.quadrature_degree})

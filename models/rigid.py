@@ -60,16 +60,14 @@ SCHEMES: dict[str, tuple[float, float, float]] = {
 class RigidBallOptions:
     """A rigid sphere; its gravity is the body's (``body.gravity``), its scheme the body's.
 
+    Its contact with the body is a sphere obstacle (:meth:`contact`) with the body's penalty
+    stiffness (``body.contact_stiffness``).
+
     Attributes:
         radius: Radius [m] (> 0).
-        mass: Mass [kg]; give exactly one of ``mass`` and ``density``.
-        density: Density [kg/m^3] (mass = density * 4/3 pi radius^3).
+        mass: Mass [kg] (> 0; required).
         center: Centre at t = 0 [m].
         velocity: Velocity at t = 0 [m/s].
-        stiffness: Penalty stiffness of its contact with the body [Pa/m]; ``None`` means
-            ``stiffness_factor * E / h_min`` (:class:`models.contact.ContactOptions`).
-        stiffness_factor: Scale of the default penalty stiffness [-].
-        quadrature_degree: Facet quadrature degree of the contact integral.
         guide: Components (0 = x, 1 = y, 2 = z) of the ball's motion held by a frictionless
             guide, e.g. ``[0, 1]``: the ball moves only vertically. Frictionless contact gives
             a sphere no torque and a flat cushion no horizontal restoring force, so without a
@@ -80,12 +78,8 @@ class RigidBallOptions:
 
     radius: float = 0.1
     mass: float | None = None
-    density: float | None = None
     center: tuple[float, float, float] = (0.0, 0.0, 0.0)
     velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    stiffness: float | None = None
-    stiffness_factor: float = 100.0
-    quadrature_degree: int = 4
     guide: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
@@ -93,18 +87,16 @@ class RigidBallOptions:
         if any(k not in (0, 1, 2) for k in guide) or len(set(guide)) != len(guide):
             raise InputError(f"ball.guide must be distinct values in 0, 1, 2, got {self.guide!r}")
         object.__setattr__(self, "guide", guide)
-        if (self.mass is None) == (self.density is None):
-            raise InputError("ball: give exactly one of 'mass' and 'density'")
-        for name in ("mass", "density"):
-            value = getattr(self, name)
-            if value is not None and not (math.isfinite(value) and value > 0.0):
-                raise InputError(f"ball.{name} must be > 0, got {value}")
+        if self.mass is None:
+            raise InputError("ball.mass: missing (the ball's mass [kg])")
+        if not (math.isfinite(self.mass) and self.mass > 0.0):
+            raise InputError(f"ball.mass must be > 0, got {self.mass}")
         object.__setattr__(self, "center", vector3("ball.center", self.center))
         object.__setattr__(self, "velocity", vector3("ball.velocity", self.velocity))
         if any(self.velocity[k] != 0.0 for k in guide):
             raise InputError(f"ball.velocity must be 0 in the guided components {guide}, got "
                              f"{self.velocity}")
-        self.contact()  # validates radius, stiffness, stiffness_factor, quadrature_degree
+        self.contact()  # validates the radius
 
     @property
     def free(self) -> np.ndarray:
@@ -113,27 +105,17 @@ class RigidBallOptions:
         mask[list(self.guide)] = 0.0
         return mask
 
-    @property
-    def total_mass(self) -> float:
-        """Mass [kg]: ``mass``, or ``density * 4/3 pi radius^3``."""
-        if self.mass is not None:
-            return self.mass
-        return float(self.density) * 4.0 / 3.0 * math.pi * self.radius**3  # type: ignore[arg-type]
-
     def contact(self) -> ContactOptions:
         """Return the sphere obstacle that holds the ball off the body."""
         try:
-            return ContactOptions(obstacle="sphere", center=self.center, radius=self.radius,
-                                  stiffness=self.stiffness,
-                                  stiffness_factor=self.stiffness_factor,
-                                  quadrature_degree=self.quadrature_degree)
+            return ContactOptions(obstacle="sphere", point=self.center, radius=self.radius)
         except InputError as exc:
             raise InputError(str(exc).replace("contact.", "ball.")) from None
 
 
 @dataclass(frozen=True)
 class RigidCouplingOptions:
-    """The per-step interface iteration ball position <-> body solve.
+    """The per-step interface iteration ball position <-> body solve (``[rigid] options``).
 
     Attributes:
         rtol: Stop when ``max |r(c)| <= rtol * radius`` (r: mismatch of the ball position
@@ -147,10 +129,9 @@ class RigidCouplingOptions:
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.rtol) and self.rtol > 0.0):
-            raise InputError(f"rigid.coupling.rtol must be > 0, got {self.rtol}")
+            raise InputError(f"options.rtol must be > 0, got {self.rtol}")
         if self.max_iterations < 1:
-            raise InputError(f"rigid.coupling.max_iterations must be >= 1, got "
-                             f"{self.max_iterations}")
+            raise InputError(f"options.max_iterations must be >= 1, got {self.max_iterations}")
 
 
 @dataclass(frozen=True)

@@ -48,7 +48,7 @@ from models.backend import (
     vector_space,
 )
 from models.body import NEWMARK_BETA, NEWMARK_GAMMA, BodyOptions, PinSpec
-from models.contact import PenaltyContact
+from models.contact import PenaltyContact, min_cell_size, penalty_stiffness
 from models.materials import Material
 from models.quadratic import QuadraticTerm
 from solvers.body_newton import EnergyNewton, NewtonOptions, NewtonResult
@@ -177,7 +177,9 @@ class Body:
         self._term: QuadraticTerm | None = None
         self._solve: Callable[[EnergyNewton], NewtonResult] = EnergyNewton.solve
         self._interface: Any = None  # set_interface_force
-        self.contacts = [PenaltyContact(c, mesh, material.E) for c in self.options.contacts]
+        k = (penalty_stiffness(self.options.contact_stiffness, material.E, min_cell_size(mesh))
+             if self.options.contacts else 0.0)
+        self.contacts = [PenaltyContact(c, mesh, k) for c in self.options.contacts]
         self.dx = ufl.Measure("dx", domain=mesh,
                               metadata={"quadrature_degree": self.options.qdegree})
         self._bcs, self._pin_constants = self._build_pins()

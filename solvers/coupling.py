@@ -242,7 +242,7 @@ class BallCoupling:
         scheme(self.dynamics)
         self.indices = list(range(first, first + len(options.balls)))
         self.others = [i for i in range(len(body.contacts)) if i not in self.indices]
-        self.mass = np.array([b.total_mass for b in options.balls])
+        self.mass = np.array([b.mass for b in options.balls], dtype=float)
         self.radius = np.array([b.radius for b in options.balls])
         self.free = np.array([b.free for b in options.balls])
         self.gravity = np.asarray(body.options.gravity, dtype=float)

@@ -31,8 +31,8 @@ def gathered(body: Body) -> np.ndarray:
 
 def compression_p2() -> Body:
     mesh = dolfinx.mesh.create_unit_cube(MPI.COMM_WORLD, 2, 2, 2)
-    pins = (PinSpec(kind="plane", point=(0, 0, 0), normal=(0, 0, 1)),
-            PinSpec(kind="plane", point=(0, 0, 1), normal=(0, 0, 1), velocity=(0.1, 0, -1)))
+    pins = (PinSpec(point=(0, 0, 0), normal=(0, 0, 1)),
+            PinSpec(point=(0, 0, 1), normal=(0, 0, 1), velocity=(0.1, 0, -1)))
     body = Body(mesh, Material(E=1e5, nu=0.3), BodyOptions(degree=2, dt=0.1, gravity=(0, 0, 0),
                                                             pins=pins))
     for _ in range(3):
@@ -60,7 +60,7 @@ def cantilever_from_arrays() -> Body:
                                          dolfinx.mesh.CellType.tetrahedron)
         points, tets = serial.geometry.x, serial.geometry.dofmaps[0].astype(np.int64)
     mesh = mesh_from_arrays(comm, points, tets)
-    pins = (PinSpec(kind="plane", point=(0, 0, 0), normal=(1, 0, 0)),)
+    pins = (PinSpec(point=(0, 0, 0), normal=(1, 0, 0)),)
     body = Body(mesh, Material(model="stvk", E=1e6, nu=0.3),
                 BodyOptions(degree=2, pins=pins))
     body.solve_static()

@@ -55,8 +55,8 @@ def distributed(points: np.ndarray, tets: np.ndarray) -> Any:
 
 def press_pins(top_velocity: float) -> tuple[PinSpec, ...]:
     """Bottom face clamped; top face clamped to ``u_z = top_velocity * t``."""
-    return (PinSpec(kind="plane", point=(0.0, 0.0, 0.0), tol=1e-9),
-            PinSpec(kind="plane", point=(0.0, 0.0, L), tol=1e-9,
+    return (PinSpec(point=(0.0, 0.0, 0.0), tol=1e-9),
+            PinSpec(point=(0.0, 0.0, L), tol=1e-9,
                     velocity=(0.0, 0.0, top_velocity)))
 
 
@@ -143,7 +143,7 @@ def sphere_case() -> BodyCase:
     """A clamped block indented by a sphere moving down at 10 m/s (20 steps of 0.1 ms)."""
     dt, speed, radius = 1e-4, 10.0, 0.04
     start = np.array([L / 2, L / 2, L + radius])
-    sphere = ContactOptions(obstacle="sphere", center=tuple(start), radius=radius)
+    sphere = ContactOptions(obstacle="sphere", point=tuple(start), radius=radius)
     b = body(Material(E=1e4, nu=0.3), BodyOptions(dynamics="implicit_euler", dt=dt,
                                                   contacts=(sphere,), gravity=(0, 0, 0),
                                                   pins=press_pins(0.0)[:1]))

@@ -25,9 +25,9 @@ SHEAR = MAT.E / (2.0 * (1.0 + MAT.nu))
 
 def twist_pins(theta: float) -> tuple[PinSpec, PinSpec]:
     """Clamp z = 0; rotate the face z = L by ``theta`` per unit load parameter about z."""
-    clamp = PinSpec(kind="plane", point=(0, 0, 0), normal=(0, 0, 1), tol=1e-6)
-    twist = PinSpec(kind="plane", point=(0, 0, L), normal=(0, 0, 1), tol=1e-6,
-                    axis=(0, 0, 1), center=(0, 0, L), angular_velocity=theta)
+    clamp = PinSpec(point=(0, 0, 0), normal=(0, 0, 1), tol=1e-6)
+    twist = PinSpec(point=(0, 0, L), normal=(0, 0, 1), tol=1e-6,
+                    angular_velocity=(0.0, 0.0, theta))
     return clamp, twist
 
 

@@ -61,7 +61,7 @@ def build_parser() -> ArgumentParser:
     run.add_argument("--out", type=Path, default=None,
                      help="output directory (default: out/<scene name>)")
     run.add_argument("--frames", type=int, default=None, help="number of frames to run "
-                     "(replaces time.frames / time.end_time)")
+                     "(replaces time.frames)")
     run.add_argument("--resume", "--restart", dest="resume", action="store_true",
                      help="continue the run in --out from its last completed frame (same "
                      "scene; time, output, newton and shell.solver may "

@@ -69,11 +69,12 @@ STEPS_SUFFIX = ".steps"
 class OutputOptions:
     """Which output files a run writes and how often.
 
+    ``summary.json`` and ``checkpoint.h5`` (the state of the last completed frame, which
+    ``wrinkles run --resume`` continues from) are always written.
+
     Attributes:
         xdmf: write the body time series ``body.xdmf`` + ``body.h5``.
         every: write the XDMF fields every N-th frame (the last frame is always written); >= 1.
-        checkpoint: write ``checkpoint.h5`` (state of the last completed frame) so that
-            ``wrinkles run --resume`` can continue the run.
         render: after a run with a shell, write ``shell.png``, per-frame PNGs and
             ``shell.gif`` (:mod:`wrinkles.render`).
 
@@ -81,7 +82,6 @@ class OutputOptions:
 
     xdmf: bool = True
     every: int = 1
-    checkpoint: bool = True
     render: bool = False
 
     def __post_init__(self) -> None:

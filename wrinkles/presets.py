@@ -44,21 +44,18 @@ the textbook 10 / 10; docs/notes/shift-schedule.md)."""
 PRESETS: dict[str, dict[str, Any]] = {
     "preview": {
         "shell.subdivision.levels": 1,
-        "shell.solver.hessian": "exact",
         "shell.solver.rtol": 1.0e-6,
         "shell.solver.max_iterations": 300,
         **SHIFT_SCHEDULE,
     },
     "balanced": {
         "shell.subdivision.levels": 2,
-        "shell.solver.hessian": "exact",
         "shell.solver.rtol": 1.0e-6,
         "shell.solver.max_iterations": 300,
         **SHIFT_SCHEDULE,
     },
     "final": {
         "shell.subdivision.levels": 3,
-        "shell.solver.hessian": "exact",
         "shell.solver.rtol": 1.0e-8,
         "shell.solver.max_iterations": 500,
         "body.degree": 2,

@@ -241,7 +241,7 @@ class Run:
     @property
     def n_frames(self) -> int:
         """Frames this run will compute."""
-        return self.scene.time.n_frames(self.scene.body.dt)
+        return self.scene.time.frames
 
 
 def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False,
@@ -278,7 +278,7 @@ def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False,
     run = Run(scene, out, body, stages)
     if scene.rigid is not None and scene.rigid.balls:
         check_balls_outside(body, scene)
-        run.rigid = BallCoupling(body, scene.rigid, len(scene.body.contacts))
+        run.rigid = BallCoupling(body, scene.rigid.internals, len(scene.body.contacts))
         run.stages = [("body+rigid", rigid_stage(run.rigid, scene.time.steps_per_frame))]
     run.facts = {"ranks": comm.size, "status": "running", "frames_planned": run.n_frames,
                  "started": datetime.now(UTC).isoformat(timespec="seconds"),
@@ -506,14 +506,13 @@ def save_frame(run: Run, frame: int) -> None:
                            np.array([b.velocity for b in balls], dtype=float))
         write_balls(run.out / BALLS_XDMF_NAME, ball_steps(initial, run.records),
                     np.array([b.radius for b in balls]))
-    if run.scene.output.checkpoint:
-        state = gather_state(run.body, frame)
-        if state is not None and run.shell is not None:
-            state = with_arrays(state, "shell", shell_arrays(run.shell))
-        if state is not None and run.rigid is not None:
-            state = with_arrays(state, "rigid", run.rigid.arrays())
-        if state is not None:
-            write_state(run.out / CHECKPOINT_NAME, state)
+    state = gather_state(run.body, frame)
+    if state is not None and run.shell is not None:
+        state = with_arrays(state, "shell", shell_arrays(run.shell))
+    if state is not None and run.rigid is not None:
+        state = with_arrays(state, "rigid", run.rigid.arrays())
+    if state is not None:
+        write_state(run.out / CHECKPOINT_NAME, state)
 
 
 RUN_MARKERS: tuple[str, ...] = (SUMMARY_NAME, CHECKPOINT_NAME, XDMF_NAME, "shell.xdmf")

@@ -6,11 +6,11 @@ dataclass of the code that uses it::
     [mesh]      SceneMesh      -- gmsh builder + [mesh.params], or a tet mesh file
     [material]  Material       -- stored energy model, E, nu, density
     [body]      BodyOptions    -- degree, dynamics, dt, gravity; [[body.pins]], [[body.contacts]]
-    [newton]    NewtonOptions  -- tolerances of the body's Newton solver
-    [time]      TimeOptions    -- number of frames (or end time), body steps per frame
+    [newton]    NewtonKeys     -- the body's Newton solver: rtol, expert options
+    [time]      TimeOptions    -- number of frames, body steps per frame
     [output]    OutputOptions  -- which files, every N frames
     [shell]     ShellOptions   -- the embedded shell (absent = body only), wrinkles/shell_setup.py
-    [rigid]     RigidOptions   -- rigid balls ([[rigid.balls]]) coupled two-way, models/rigid.py
+    [rigid]     RigidKeys      -- rigid balls ([[rigid.balls]]) coupled two-way, models/rigid.py
 
 Tables that are absent keep their defaults; optional physics is off unless the scene asks for
 it: no ``[[body.contacts]]`` means no obstacle, no ``[[body.pins]]`` no pins, and
@@ -31,7 +31,7 @@ from typing import Any, Literal
 from meshes.errors import InputError
 from models.body import BodyOptions
 from models.materials import Material
-from models.rigid import RigidOptions, scheme
+from models.rigid import RigidBallOptions, RigidCouplingOptions, RigidOptions, scheme
 from solvers.body_newton import NewtonOptions
 from wrinkles.config import Source, build, call_kwargs, expert, flatten, load, to_dict, unflatten
 from wrinkles.output import OutputOptions
@@ -73,71 +73,70 @@ class TimeOptions:
     """The frame loop: each frame advances the body by ``steps_per_frame`` steps of ``body.dt``.
 
     The time step itself belongs to the body's integrator (``body.dt``); a frame is the
-    output interval ``steps_per_frame * body.dt``.
+    output interval ``steps_per_frame * body.dt``, so a run ends at
+    ``t = frames * steps_per_frame * body.dt``.
 
     Attributes:
-        frames: number of frames; ``None`` to derive it from ``end_time``.
-        end_time: final time [s]; frames = ceil(end_time / frame interval). At most one of
-            ``frames`` and ``end_time`` may be given; with neither, a single frame is run.
+        frames: number of frames (>= 1).
         steps_per_frame: body steps per frame (>= 1).
 
     """
 
-    frames: int | None = None
-    end_time: float | None = None
+    frames: int = 1
     steps_per_frame: int = 1
 
     def __post_init__(self) -> None:
-        if self.frames is not None and self.end_time is not None:
-            raise InputError("give either 'time.frames' or 'time.end_time', not both")
-        if self.frames is not None and self.frames < 1:
+        if self.frames < 1:
             raise InputError(f"time.frames must be >= 1, got {self.frames}")
-        if self.end_time is not None and not self.end_time > 0.0:
-            raise InputError(f"time.end_time must be > 0, got {self.end_time}")
         if self.steps_per_frame < 1:
             raise InputError(f"time.steps_per_frame must be >= 1, got {self.steps_per_frame}")
-
-    def n_frames(self, dt: float) -> int:
-        """Return the number of frames to run with body time step ``dt`` [s]."""
-        if self.frames is not None:
-            return self.frames
-        if self.end_time is not None:
-            return max(1, math.ceil(self.end_time / (dt * self.steps_per_frame) - 1e-9))
-        return 1
 
 
 @dataclass(frozen=True)
 class NewtonKeys:
-    """``[newton]``: the body's Newton solver, named keys and an expert mapping.
+    """``[newton]``: the body's Newton solver, a tolerance and an expert mapping.
 
     Attributes:
         rtol: relative tolerance on the residual norm.
-        atol: absolute tolerance on the residual norm [N].
-        max_it: Newton iterations per solve.
         options: expert mapping of the other fields of
-            :class:`solvers.body_newton.NewtonOptions` (``line_search_type``, ``max_halvings``,
-            ...), including ``petsc``: PETSc options of the body's SNES / KSP / PC
-            (``"petsc.ksp_type" = "gmres"``), set last, as dolfinx passes ``petsc_options``.
+            :class:`solvers.body_newton.NewtonOptions` (``atol``, ``max_it``,
+            ``line_search_type``, ``max_halvings``, ...), including ``petsc``: PETSc options of
+            the body's SNES / KSP / PC (``"petsc.ksp_type" = "gmres"``), set last, as dolfinx
+            passes ``petsc_options``.
 
     """
 
     rtol: float = 1e-9
-    atol: float = 1e-10
-    max_it: int = 50
     options: dict[str, Any] = field(default_factory=dict)
     internals: NewtonOptions = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "options", flatten(unflatten(self.options, "newton.options")))
-        for name in ("rtol", "atol"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise InputError(f"newton.{name} must be finite and >= 0, got {value}")
-        if self.max_it < 1:
-            raise InputError(f"newton.max_it must be >= 1, got {self.max_it}")
-        named = {"rtol": self.rtol, "atol": self.atol, "max_it": self.max_it}
-        object.__setattr__(self, "internals",
-                           expert(NewtonOptions, self.options, "newton.options", named))
+        if not (math.isfinite(self.rtol) and self.rtol >= 0.0):
+            raise InputError(f"newton.rtol must be finite and >= 0, got {self.rtol}")
+        object.__setattr__(self, "internals", expert(NewtonOptions, self.options,
+                                                     "newton.options", {"rtol": self.rtol}))
+
+
+@dataclass(frozen=True)
+class RigidKeys:
+    """``[rigid]``: the rigid balls and an expert mapping of their coupling iteration.
+
+    Attributes:
+        balls: the rigid balls (``[[rigid.balls]]``); each adds a sphere contact to the body.
+        options: expert mapping of :class:`models.rigid.RigidCouplingOptions` (``rtol``,
+            ``max_iterations`` of the per-step ball <-> body iteration).
+
+    """
+
+    balls: tuple[RigidBallOptions, ...] = ()
+    options: dict[str, Any] = field(default_factory=dict)
+    internals: RigidOptions = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "options", flatten(unflatten(self.options, "rigid.options")))
+        coupling = expert(RigidCouplingOptions, self.options, "rigid.options")
+        object.__setattr__(self, "internals", RigidOptions(balls=self.balls, coupling=coupling))
 
 
 @dataclass(frozen=True)
@@ -153,7 +152,7 @@ class Scene:
         material: the body's hyperelastic material.
         body: the body's discretisation, dynamics, time step, gravity, pins and contacts.
         newton: the body's Newton solver.
-        time: frame count (or end time) and body steps per frame.
+        time: frame count and body steps per frame.
         output: output files and their frequency.
         shell: the embedded shell and its coupling; ``None`` (no ``[shell]`` table) runs the
             body only.
@@ -172,7 +171,7 @@ class Scene:
     time: TimeOptions = field(default_factory=TimeOptions)
     output: OutputOptions = field(default_factory=OutputOptions)
     shell: ShellOptions | None = None
-    rigid: RigidOptions | None = None
+    rigid: RigidKeys | None = None
 
     def __post_init__(self) -> None:
         if self.rigid is not None and self.rigid.balls:
@@ -220,8 +219,8 @@ STANDARD_GRAVITY = 9.81
 def apply_up(doc: dict[str, Any], where: str = "<dict>") -> None:
     """Fill the defaults that follow ``up`` into the document, where absent (in place).
 
-    ``body.gravity`` is ``-9.81 up``; the ``normal`` of a plane contact or a plane pin is
-    ``up``. Keys written in the file (or ``--set``) are left as they are.
+    ``body.gravity`` is ``-9.81 up``; the ``normal`` of a plane contact or a plane pin (a
+    pin without ``box``) is ``up``. Keys written in the file (or ``--set``) are left as they are.
 
     Raises:
         InputError: ``up`` is not one of ``"x"``, ``"y"``, ``"z"``.
@@ -236,10 +235,65 @@ def apply_up(doc: dict[str, Any], where: str = "<dict>") -> None:
         return
     if up != "z":
         body.setdefault("gravity", [-STANDARD_GRAVITY * c if c else 0.0 for c in e])
-    for key, kind in (("contacts", "obstacle"), ("pins", "kind")):
+    for key in ("contacts", "pins"):
         for entry in body.get(key, []) if isinstance(body.get(key), list) else []:
-            if isinstance(entry, dict) and entry.get(kind, "plane") == "plane":
+            if not isinstance(entry, dict) or "box" in entry:
+                continue
+            if entry.get("obstacle", "plane") == "plane":
                 entry.setdefault("normal", list(e))
+
+
+RETIRED: dict[str, str] = {
+    "time.end_time": "give time.frames (the run ends at frames * steps_per_frame * body.dt)",
+    "newton.atol": "set it in [newton.options] (atol = ...)",
+    "newton.max_it": "set it in [newton.options] (max_it = ...)",
+    "body.quadrature_degree": "the volume quadrature degree is 2 * body.degree",
+    "body.pins[].kind": "a pin with 'box' selects a box, one without it the plane through "
+                        "'point' with 'normal'",
+    "body.pins[].box_min": "give box = [[xmin, ymin, zmin], [xmax, ymax, zmax]]",
+    "body.pins[].box_max": "give box = [[xmin, ymin, zmin], [xmax, ymax, zmax]]",
+    "body.pins[].value": "a pin starts at rest: give its velocity",
+    "body.pins[].angle": "a pin starts at rest: give its angular_velocity",
+    "body.pins[].axis": "give angular_velocity as a vector along the axis",
+    "body.pins[].center": "the rotation axis passes through the pin's 'point'",
+    "body.contacts[].center": "a sphere's centre is its 'point'",
+    "body.contacts[].stiffness": "give body.contact_stiffness (one for all contacts)",
+    "body.contacts[].stiffness_factor": "give body.contact_stiffness [Pa/m]",
+    "body.contacts[].quadrature_degree": "the facet quadrature is fixed per obstacle shape",
+    "rigid.balls[].density": "give the ball's mass [kg]",
+    "rigid.balls[].stiffness": "give body.contact_stiffness (one for all contacts)",
+    "rigid.balls[].stiffness_factor": "give body.contact_stiffness [Pa/m]",
+    "rigid.balls[].quadrature_degree": "the facet quadrature is fixed per obstacle shape",
+    "rigid.coupling": "set rtol / max_iterations in [rigid.options]",
+    "output.checkpoint": "checkpoint.h5 is always written",
+    "shell.solver.hessian": "set it in [shell.solver.options] (\"energy.hessian_mode\" = ...)",
+}
+"""Keys of earlier scene files that are refused with what replaces them (other unknown keys
+get the loader's closest-key hint)."""
+
+
+def refuse_retired(doc: dict[str, Any], where: str = "<dict>") -> None:
+    """Refuse a key of :data:`RETIRED` in the document, naming the key and its replacement.
+
+    Raises:
+        InputError: ``where: <dotted key>: no longer a scene key; <hint>``.
+
+    """
+    def walk(table: Any, prefix: str, pattern: str) -> None:
+        if isinstance(table, list):
+            for i, entry in enumerate(table):
+                walk(entry, f"{prefix}[{i}]", f"{pattern}[]")
+            return
+        if not isinstance(table, dict):
+            return
+        for key, value in table.items():
+            dotted, shape = f"{prefix}.{key}".lstrip("."), f"{pattern}.{key}".lstrip(".")
+            hint = RETIRED.get(shape)
+            if hint:
+                raise InputError(f"{where}: {dotted}: no longer a scene key; {hint}")
+            walk(value, dotted, shape)
+
+    walk(doc, "", "")
 
 
 def load_scene(path: str | Path, overrides: list[str] | None = None) -> Scene:
@@ -250,7 +304,7 @@ def load_scene(path: str | Path, overrides: list[str] | None = None) -> Scene:
 
     """
     path = Path(path)
-    scene = load(Scene, path, overrides, overlays=(apply_up,))
+    scene = load(Scene, path, overrides, overlays=(refuse_retired, apply_up))
     keys = frozenset(o.partition("=")[0].strip() for o in overrides or [])
     return resolve(scene, path.resolve().parent, Source(path.name, keys))
 
@@ -259,6 +313,7 @@ def scene_from_dict(data: dict[str, Any], base: Path, name: str = "<dict>") -> S
     """Build a scene from a plain dict (e.g. the ``scene`` entry of ``summary.json``)."""
     src = Source(name)
     data = copy.deepcopy(data)
+    refuse_retired(data, name)
     apply_up(data, name)
     return resolve(build(Scene, data, "", src), base, src)
 
@@ -266,7 +321,7 @@ def scene_from_dict(data: dict[str, Any], base: Path, name: str = "<dict>") -> S
 def with_frames(scene: Scene, frames: int) -> Scene:
     """Return the scene with ``time.frames`` replaced (the ``--frames`` option)."""
     try:
-        time = dataclasses.replace(scene.time, frames=frames, end_time=None)
+        time = dataclasses.replace(scene.time, frames=frames)
     except InputError as exc:
         raise InputError(f"--frames: {exc}") from None
     return dataclasses.replace(scene, time=time)

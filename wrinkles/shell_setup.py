@@ -184,19 +184,17 @@ class SolverKeys:
         method: linear solves of the Newton steps: "auto" (by the shell's size,
             :func:`solvers.solver_choice.choose_linear_method`), "direct" (sparse LDL^T) or
             "multigrid" (CG with geometric multigrid on the subdivision hierarchy).
-        hessian: "exact", "gauss_newton" or "projected" (:mod:`models.shell.assembly`).
         rtol: relative gradient tolerance of each frame's Newton solve.
         max_iterations: Newton iterations per frame.
         threads: threads of the element kernels and multigrid products; 0 = the cores of a
             serial run of a large shell, else 1 (:func:`solvers.solver_choice.choose_threads`).
         options: expert mapping of dotted paths into :class:`ShellInternals` (``"newton.shift.
-            growth" = 5``, ``"energy.k_F" = 0``, ``"coupling.scheme" = "implicit"``), checked
-            like any key; ``wrinkles check`` prints the resolved values.
+            growth" = 5``, ``"energy.hessian_mode" = "gauss_newton"``, ``"coupling.scheme" =
+            "implicit"``), checked like any key; ``wrinkles check`` prints the resolved values.
 
     """
 
     method: Literal["auto", "direct", "multigrid"] = "auto"
-    hessian: Literal["exact", "gauss_newton", "projected"] = "exact"
     rtol: float = 1e-8
     max_iterations: int = 200
     threads: int = 0
@@ -303,7 +301,6 @@ class ShellOptions:
             "subdivision.levels": self.subdivision.levels,
             "subdivision.scheme": self.subdivision.scheme,
             "coupling.mode": self.coupling.mode,
-            "energy.hessian_mode": solver.hessian,
             "newton.rtol": solver.rtol, "newton.max_iterations": solver.max_iterations}
         if solver.method != "auto":  # resolved by resolve_solver once the size is known
             keys["newton.linear_method"] = solver.method

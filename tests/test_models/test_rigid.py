@@ -156,20 +156,21 @@ def test_point_triangle_distance_against_dense_sampling():
 
 
 def test_ball_options_validation_and_mass():
-    ball = RigidBallOptions(radius=0.1, density=1000.0)
-    assert ball.total_mass == pytest.approx(1000.0 * 4.0 / 3.0 * np.pi * 1e-3, rel=1e-15)
-    assert ball.contact().obstacle == "sphere" and ball.contact().radius == 0.1
-    with pytest.raises(InputError, match="exactly one of 'mass' and 'density'"):
-        RigidBallOptions(radius=0.1, mass=1.0, density=1.0)
+    ball = RigidBallOptions(radius=0.1, mass=4.0, center=(1.0, 2.0, 3.0))
+    contact = ball.contact()
+    assert contact.obstacle == "sphere" and contact.radius == 0.1
+    assert contact.point == (1.0, 2.0, 3.0) and contact.quadrature_degree == 6
+    with pytest.raises(InputError, match="ball.mass: missing"):
+        RigidBallOptions(radius=0.1)
+    with pytest.raises(InputError, match="ball.mass must be > 0"):
+        RigidBallOptions(radius=0.1, mass=-1.0)
     with pytest.raises(InputError, match="ball.radius"):
         RigidBallOptions(radius=0.0, mass=1.0)
-    with pytest.raises(InputError, match="ball.stiffness"):
-        RigidBallOptions(mass=1.0, stiffness=-1.0)
     with pytest.raises(InputError, match="ball.guide"):
         RigidBallOptions(mass=1.0, guide=(0, 3))
     with pytest.raises(InputError, match="guided components"):
         RigidBallOptions(mass=1.0, guide=(0,), velocity=(1.0, 0.0, 0.0))
-    with pytest.raises(InputError, match="rigid.coupling.rtol"):
+    with pytest.raises(InputError, match="options.rtol"):
         RigidCouplingOptions(rtol=0.0)
     with pytest.raises(InputError, match="body.dynamics"):
         scheme("static")
@@ -237,7 +238,7 @@ def test_guided_ball_moves_only_vertically_and_books_the_guide(dynamics):
     mesh = mesh_from_arrays(MPI.COMM_WORLD, m.points, m.tets)
     ball = RigidBallOptions(radius=0.15, mass=2.0, center=(0.33, 0.2, 0.2 + 0.15 + 0.002),
                             velocity=(0.0, 0.0, -1.0), guide=(0, 1))
-    floor = PinSpec(kind="plane", point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0), tol=1e-6)
+    floor = PinSpec(point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0), tol=1e-6)
     body = Body(mesh, Material(E=1e4, nu=0.3, density=100.0),
                 BodyOptions(dynamics=dynamics, dt=5e-3, contacts=(ball.contact(),),
                             pins=(floor,)))

@@ -80,8 +80,8 @@ def test_sphere_contact_pushes_back_and_moves():
     from models.body import PinSpec
 
     mesh = dolfinx.mesh.create_unit_cube(MPI.COMM_WORLD, 4, 4, 4)
-    pins = (PinSpec(kind="plane", point=(0, 0, 0), normal=(0, 0, 1)),)
-    sphere = ContactOptions(obstacle="sphere", center=(0.5, 0.5, 1.3), radius=0.32)
+    pins = (PinSpec(point=(0, 0, 0), normal=(0, 0, 1)),)
+    sphere = ContactOptions(obstacle="sphere", point=(0.5, 0.5, 1.3), radius=0.32)
     body = Body(mesh, MAT, BodyOptions(gravity=(0, 0, 0), pins=pins, contacts=(sphere,)))
     forces = []
     for depth in (0.01, 0.02):
@@ -102,8 +102,8 @@ def test_moving_pins_in_dynamics_follow_the_prescribed_motion():
 
     def block(dynamics: str) -> Body:
         mesh = dolfinx.mesh.create_unit_cube(MPI.COMM_WORLD, 3, 3, 3)
-        pins = (PinSpec(kind="plane", point=(0, 0, 0), normal=(0, 0, 1)),
-                PinSpec(kind="plane", point=(0, 0, 1), normal=(0, 0, 1),
+        pins = (PinSpec(point=(0, 0, 0), normal=(0, 0, 1)),
+                PinSpec(point=(0, 0, 1), normal=(0, 0, 1),
                         velocity=(0.0, 0.0, -0.1)))
         return Body(mesh, MAT, BodyOptions(dynamics=dynamics, dt=0.1, gravity=(0, 0, 0),
                                            pins=pins))

@@ -21,8 +21,8 @@ def compression_body(degree: int, dt: float, n: int = 3, newton: NewtonOptions |
                      speed: float = 1.0) -> Body:
     """Unit cube, bottom face clamped, top face clamped and pushed down at ``speed`` per t."""
     mesh = dolfinx.mesh.create_unit_cube(MPI.COMM_WORLD, n, n, n)
-    pins = (PinSpec(kind="plane", point=(0, 0, 0), normal=(0, 0, 1)),
-            PinSpec(kind="plane", point=(0, 0, 1), normal=(0, 0, 1),
+    pins = (PinSpec(point=(0, 0, 0), normal=(0, 0, 1)),
+            PinSpec(point=(0, 0, 1), normal=(0, 0, 1),
                     velocity=(0.0, 0.0, -speed)))
     opts = BodyOptions(degree=degree, dynamics="static", dt=dt, gravity=(0, 0, 0), pins=pins)
     return Body(mesh, MAT, opts, newton or NewtonOptions(rtol=1e-10))
@@ -86,7 +86,7 @@ def cantilever(line_search: bool) -> Body:
     """A soft 1 m x 0.1 m x 0.1 m beam clamped at x = 0; its own weight bends it ~90 deg."""
     mesh = dolfinx.mesh.create_box(MPI.COMM_WORLD, [[0, 0, 0], [1, 0.1, 0.1]], [10, 1, 1],
                                    dolfinx.mesh.CellType.tetrahedron)
-    opts = BodyOptions(pins=(PinSpec(kind="plane", point=(0, 0, 0), normal=(1, 0, 0)),))
+    opts = BodyOptions(pins=(PinSpec(point=(0, 0, 0), normal=(1, 0, 0)),))
     newton = NewtonOptions(rtol=1e-10, line_search=line_search)
     return Body(mesh, Material(E=2.0e4, nu=0.3), opts, newton)
 

@@ -14,7 +14,7 @@ from solvers.body import Body
 
 def test_residual_and_jacobian_are_derivatives_of_the_energy(rng):
     mesh = dolfinx.mesh.create_unit_cube(MPI.COMM_WORLD, 2, 2, 2)
-    sphere = ContactOptions(obstacle="sphere", center=(0.5, 0.5, 1.25), radius=0.3)
+    sphere = ContactOptions(obstacle="sphere", point=(0.5, 0.5, 1.25), radius=0.3)
     opts = BodyOptions(degree=2, dynamics="implicit_euler", dt=0.01, contacts=(sphere,))
     body = Body(mesh, Material(model="neo_hookean", E=1e5, nu=0.3), opts)
     body.v.x.array[:] = 0.1 * rng.standard_normal(body.v.x.array.size)

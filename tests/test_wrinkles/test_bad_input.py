@@ -70,7 +70,7 @@ def assert_refused(code: int, err: str, *names: str) -> None:
 SCENE_CASES: list[tuple[str, Any, tuple[str, ...]]] = [
     ("materal.E", 1.0, ("materal",)),                                # unknown table
     ("material.Young", 1.0, ("material.Young",)),                    # unknown key
-    ("body.pins", [{"kind": "plane", "colour": 1}], ("colour",)),     # unknown nested key
+    ("body.pins", [{"colour": 1}], ("colour",)),     # unknown nested key
     ("material.E", "soft", ("material.E",)),                         # wrong type
     ("material.E", -1.0, ("E",)),                                    # negative
     ("material.E", math.nan, ("E",)),                                # NaN
@@ -82,14 +82,14 @@ SCENE_CASES: list[tuple[str, Any, tuple[str, ...]]] = [
     ("body.dt", -1e-3, ("body.dt",)),
     ("body.degree", 3, ("body.degree",)),
     ("body.gravity", [0.0, 9.81], ("gravity",)),
-    ("body.pins", [{"kind": "plane", "normal": [0.0, 0.0, 0.0]}], ("normal",)),
+    ("body.pins", [{"normal": [0.0, 0.0, 0.0]}], ("normal",)),
     ("body.pins", [{"components": [0, 0]}], ("components",)),
     ("body.contacts", [{"obstacle": "torus"}], ("obstacle",)),
-    ("newton.max_it", 0, ("newton.max_it",)),
+    ("newton.options", {"max_it": 0}, ("max_it",)),
     ("newton.rtol", math.nan, ("newton.rtol",)),
     ("newton.options", {"linear_solver": "umfpack"}, ("linear_solver",)),
     ("time.frames", 0, ("frames",)),
-    ("time.end_time", 1.0, ("end_time",)),                           # frames and end_time
+    ("time.end_time", 1.0, ("time.end_time", "time.frames")),        # retired key
     ("time.steps_per_frame", -2, ("steps_per_frame",)),
     ("output.every", 0, ("output.every",)),
     ("mesh.file", "body.vtu", ("mesh",)),                            # builder and file
@@ -257,7 +257,7 @@ def test_inverted_mesh_is_repaired_with_a_warning_and_runs(tmp_path, capsys):
 
 
 def test_pin_selecting_no_node_refused(tmp_path, capsys):
-    doc = set_key(base_scene(), "body.pins", [{"kind": "plane", "point": [0.0, 0.0, 5.0]}])
+    doc = set_key(base_scene(), "body.pins", [{"point": [0.0, 0.0, 5.0]}])
     scene = write_scene(tmp_path, doc)
     assert_refused(*run_cli(capsys, "run", str(scene), "--out", str(tmp_path / "out")),
                    "pin", "selects no node")

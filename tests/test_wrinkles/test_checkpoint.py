@@ -27,7 +27,7 @@ def swinging_block(dynamics: str) -> Body:
     """A 0.1 m soft block clamped at x = 0, swinging down under gravity (large rotations)."""
     tet = structured_box((4, 2, 2), (0.1, 0.05, 0.05))
     mesh = mesh_from_arrays(MPI.COMM_WORLD, tet.points, tet.tets)
-    pins = (PinSpec(kind="plane", point=(0.0, 0.0, 0.0), normal=(1.0, 0.0, 0.0), tol=1e-9),)
+    pins = (PinSpec(point=(0.0, 0.0, 0.0), normal=(1.0, 0.0, 0.0), tol=1e-9),)
     options = BodyOptions(degree=1, dynamics=dynamics, dt=0.02, gravity=(0.0, 0.0, -9.81),
                           pins=pins)
     return Body(mesh, Material(E=2e3, nu=0.3, density=1000.0), options,

@@ -97,7 +97,7 @@ def test_summary_has_one_record_per_frame(five_frames):
 def test_solver_failure_exits_2_and_keeps_completed_frames(tmp_path):
     out = tmp_path / "out"
     proc = wrinkles("run", str(DEFAULT), "--frames", "8", "--out", str(out),
-                    "--set", "newton.max_it=1", "--set", "newton.options.max_halvings=0")
+                    "--set", "newton.options.max_it=1", "--set", "newton.options.max_halvings=0")
     assert proc.returncode == 2, proc.stderr
     assert "Traceback" not in proc.stderr
     assert proc.stderr.count("\n") == 1 and proc.stderr.startswith("error: body step failed")

@@ -134,8 +134,7 @@ def test_warnings_name_the_keys_a_user_changes(tmp_path):
     assert any("shell.subdivision.levels = 0: the skin's wrinkle wavelength" in ln
                for ln in lines)
     assert any(ln.startswith("warning: shell.clusters: the median cluster holds") for ln in lines)
-    pin = ('body.pins=[{kind="box", box_min=[0.0, 0.0, 0.02], box_max=[0.0, 0.0, 0.02], '
-           'tol=1e-9}]')
+    pin = 'body.pins=[{box=[[0.0, 0.0, 0.02], [0.0, 0.0, 0.02]], tol=1e-9}]'
     proc = wrinkles("run", str(DROP_BLOCK), "--out", str(tmp_path / "b"), "--frames", "1",
                     "--set", pin)
     assert proc.returncode == 0, proc.stderr

@@ -60,7 +60,7 @@ def test_default_scene_loads_with_its_values():
     assert scene.material.E == 5.0e4 and scene.material.nu == 0.35
     assert scene.body.dynamics == "implicit_euler" and scene.body.dt == 0.01
     assert len(scene.body.contacts) == 1 and scene.body.contacts[0].obstacle == "plane"
-    assert scene.time.n_frames(scene.body.dt) == 30
+    assert scene.time.frames == 30
     assert scene.body.pins == ()
 
 
@@ -69,7 +69,7 @@ def test_absent_tables_mean_physics_off(tmp_path):
                                    'params = { radius = 0.1, h = 0.05 }\n'))
     assert scene.body.contacts == () and scene.body.pins == ()
     assert scene.body.dynamics == "static"
-    assert scene.time.n_frames(scene.body.dt) == 1
+    assert scene.time.frames == 1
 
 
 @pytest.mark.parametrize("path", sorted((REPO / "scenes").glob("*.toml")), ids=lambda p: p.name)
@@ -79,7 +79,7 @@ def test_every_scene_loads_and_explains_itself(path):
     scene = load_scene(path)
     assert scene.title
     assert path.read_text().startswith("# ")  # a comment at the top says what it shows
-    assert scene.time.n_frames(scene.body.dt) >= 1
+    assert scene.time.frames >= 1
 
 
 @pytest.mark.parametrize(("every", "written"), [(1, [1, 2, 3, 4, 5, 6, 7]), (3, [3, 6, 7])])
@@ -188,16 +188,30 @@ def test_unknown_builder_suggests(tmp_path):
     assert message.startswith("scene.toml: mesh.builder must be one of ('box', ")
 
 
-def test_frames_and_end_time_conflict(tmp_path):
-    message = load_error(tmp_path, BASE + "\n[time]\nframes = 3\nend_time = 1.0\n")
-    assert message == ("scene.toml: time: give either 'time.frames' or 'time.end_time', "
-                       "not both")
+@pytest.mark.parametrize(("text", "message"), [
+    ("\n[time]\nend_time = 0.1\n", "time.end_time: no longer a scene key; give time.frames"),
+    ("\n[newton]\natol = 1e-8\n", "newton.atol: no longer a scene key; set it in "
+                                  "[newton.options]"),
+    ("\n[[body.pins]]\nkind = \"box\"\n", "body.pins[0].kind: no longer a scene key; a pin "
+                                         "with 'box' selects a box"),
+    ("\n[[body.pins]]\npoint = [0, 0, 0]\n[[body.pins]]\nbox_min = [0, 0, 0]\n",
+     "body.pins[1].box_min: no longer a scene key; give box = [[xmin, ymin, zmin], "),
+    ("\n[[body.contacts]]\nobstacle = \"sphere\"\ncenter = [0, 0, 1]\n",
+     "body.contacts[1].center: no longer a scene key; a sphere's centre is its 'point'"),
+    ("\n[rigid.coupling]\nrtol = 1e-6\n", "rigid.coupling: no longer a scene key; set rtol / "
+                                          "max_iterations in [rigid.options]"),
+    ("\n[output]\ncheckpoint = false\n", "output.checkpoint: no longer a scene key; "
+                                         "checkpoint.h5 is always written"),
+])
+def test_retired_key_names_its_replacement(tmp_path, text, message):
+    assert load_error(tmp_path, BASE + text).startswith(f"scene.toml: {message}")
 
 
-def test_end_time_gives_frame_count(tmp_path):
-    scene = load_scene(write_scene(tmp_path, BASE + "\n[time]\nend_time = 0.1\n"
+def test_frames_set_the_end_time(tmp_path):
+    scene = load_scene(write_scene(tmp_path, BASE + "\n[time]\nframes = 5\n"
                                    "steps_per_frame = 2\n"))
-    assert scene.time.n_frames(scene.body.dt) == 5  # 0.1 s / (2 x 0.01 s)
+    assert scene.time.frames * scene.time.steps_per_frame * scene.body.dt == \
+        pytest.approx(0.1)  # 5 frames x 2 steps x 0.01 s
 
 
 def test_invalid_toml_names_file(tmp_path):
@@ -263,9 +277,9 @@ def test_apply_override_creates_tables():
     assert doc == {"a": {"b": {"c": 2}}}
 
 
-def test_with_frames_replaces_end_time(tmp_path):
-    scene = load_scene(write_scene(tmp_path, BASE + "\n[time]\nend_time = 1.0\n"))
-    assert with_frames(scene, 4).time.n_frames(0.01) == 4
+def test_with_frames_replaces_the_frame_count(tmp_path):
+    scene = load_scene(write_scene(tmp_path, BASE + "\n[time]\nframes = 7\n"))
+    assert with_frames(scene, 4).time.frames == 4
     with pytest.raises(InputError, match=r"^--frames: time.frames must be >= 1, got 0$"):
         with_frames(scene, 0)
 
@@ -276,28 +290,25 @@ def test_with_frames_replaces_end_time(tmp_path):
 def test_resolved_scene_round_trips_through_json(tmp_path):
     text = BASE + """
 [[body.pins]]
-kind = "box"
-box_min = [-inf, -inf, -1.0]
-box_max = [inf, inf, 0.0]
+box = [[-inf, -inf, -1.0], [inf, inf, 0.0]]
 components = [2]
 
 [[body.contacts]]
 obstacle = "sphere"
-center = [0.2, 0.2, 0.5]
+point = [0.2, 0.2, 0.5]
 radius = 0.1
-stiffness = 1e6
 
 [time]
 frames = 3
 """
-    scene = load_scene(write_scene(tmp_path, text))
+    scene = load_scene(write_scene(tmp_path, text), ["body.contact_stiffness=1e6"])
     data = json.loads(json_text(scene_dict(scene)))  # strict JSON, as summary.json has it
-    assert data["body"]["pins"][0]["box_min"] == ["-inf", "-inf", -1.0]
+    assert data["body"]["pins"][0]["box"] == [["-inf", "-inf", -1.0], ["inf", "inf", 0.0]]
     again = scene_from_dict(data, tmp_path, "summary.json")
     assert again == scene
-    assert again.body.pins[0].box_min == (-math.inf, -math.inf, -1.0)
-    assert data["body"]["contacts"][1]["stiffness"] == 1.0e6
-    assert data["body"]["contacts"][0]["stiffness"] is None
+    assert again.body.pins[0].box == ((-math.inf, -math.inf, -1.0), (math.inf, math.inf, 0.0))
+    assert data["body"]["contact_stiffness"] == 1.0e6
+    assert data["body"]["contacts"][1]["point"] == [0.2, 0.2, 0.5]
     assert data["mesh"]["params"] == {"lx": 0.4, "ly": 0.4, "lz": 0.2, "h": 0.1}
     assert set(data) == {"mesh", "title", "up", "material", "body", "newton", "time", "output",
                          "shell"}
@@ -412,7 +423,8 @@ def test_builder_params_nested_dataclass(tmp_path):
     ("\n[output]\nevery = 0\n", "scene.toml: output.every must be >= 1, got 0"),
     ("\n[time]\nframes = 0\n", "scene.toml: time.frames must be >= 1, got 0"),
     ("\n[time]\nsteps_per_frame = 0\n", "scene.toml: time.steps_per_frame must be >= 1, got 0"),
-    ("\n[newton]\nmax_it = 0\n", "scene.toml: newton.max_it must be >= 1, got 0"),
+    ("\n[newton.options]\nmax_it = 0\n", "scene.toml: newton.options: newton.max_it must be >= 1, "
+                                          "got 0"),
     ("\n[output]\nxdmf = 1\n", "scene.toml: output.xdmf: expected bool, got int 1"),
 ])
 def test_value_checks_of_the_other_tables(tmp_path, extra, expected):

@@ -36,7 +36,7 @@ FUZZ = settings(max_examples=250, deadline=None, derandomize=True,
 def schema_scene() -> dict[str, Any]:
     """A valid scene with every key the loader knows (``None`` values dropped: no TOML null)."""
     doc = base_scene()
-    doc["body"]["contacts"] = [{"obstacle": "sphere", "center": [0.05, 0.05, 0.2],
+    doc["body"]["contacts"] = [{"obstacle": "sphere", "point": [0.05, 0.05, 0.2],
                                 "radius": 0.05}]
     full = json.loads(json.dumps(scene_dict(scene_from_dict(doc, Path.cwd()))))
     return prune(full)

@@ -22,7 +22,8 @@ from support import drop_scene, wrinkles
 
 from wrinkles.output import complete_steps
 
-FORCE = ["--frames", "8", "--set", "newton.max_it=1", "--set", "newton.options.max_halvings=0"]
+FORCE = ["--frames", "8", "--set", "newton.options.max_it=1",
+         "--set", "newton.options.max_halvings=0"]
 
 
 def check_failed_run(out: Path, stderr: str, returncode: int) -> dict:

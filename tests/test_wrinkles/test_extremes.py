@@ -449,8 +449,8 @@ def test_sofa_hit_by_ball_at_10_m_per_s():
     mesh = distributed(m.points, m.tets)
     dt, speed, radius, seat_top = 1e-3, 10.0, 0.2, 0.45
     start = np.array([1.0, 0.35, seat_top + radius])
-    sphere = ContactOptions(obstacle="sphere", center=tuple(start), radius=radius)
-    floor = PinSpec(kind="plane", point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0))
+    sphere = ContactOptions(obstacle="sphere", point=tuple(start), radius=radius)
+    floor = PinSpec(point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0))
     b = body(Material(E=5e4, nu=0.3, density=50.0),
              BodyOptions(dynamics="implicit_euler", dt=dt, contacts=(sphere,), pins=(floor,)),
              mesh=mesh)

@@ -127,7 +127,8 @@ def test_multigrid_linear_method_runs_a_scene_to_the_direct_minimiser(tmp_path):
     minimiser the direct solve finds with the same Hessian mode, to the solver tolerance (the
     scene default, inexact Newton down to 1e-4, may take another path to another wrinkled
     minimiser: tests/test_wrinkles/test_fast_defaults.py)."""
-    gn = ["--set", "shell.solver.hessian=gauss_newton", "--set", "shell.imperfection=0.0",
+    gn = ["--set", "shell.solver.options.energy.hessian_mode=gauss_newton",
+          "--set", "shell.imperfection=0.0",
           "--set", "shell.solver.options.newton.multigrid.forcing=fixed",
           "--set", "shell.solver.options.newton.multigrid.rtol=1e-8"]
     energies = {}

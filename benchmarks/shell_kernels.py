@@ -24,7 +24,7 @@ Usage::
     python benchmarks/shell_kernels.py --sizes 10k 40k 160k 640k --assembled-max 0
     python benchmarks/shell_kernels.py --sizes 40k --clock cpu   # on a shared machine
 
-Prints a table and writes benchmarks/results/shell_kernels.json.
+Prints a table and writes benchmarks/results/shell_kernels.json (``--out`` another file).
 """
 
 from __future__ import annotations
@@ -228,6 +228,7 @@ def main() -> None:
                     help="wall time, or process CPU time on a shared machine")
     ap.add_argument("--reorder", nargs="+", default=["none", "rcm"],
                     choices=list(REORDER_METHODS), help="vertex renumberings to compare")
+    ap.add_argument("--out", type=Path, default=RESULTS, help="JSON file to write")
     args = ap.parse_args()
     sizes = ["10k"] if args.quick else args.sizes
     _clock[0] = CLOCKS[args.clock]
@@ -239,15 +240,15 @@ def main() -> None:
                 rec = bench_one(kind, size, reorder, args)
                 print_row(rec)
                 records.append(rec)
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     meta = {"python": platform.python_version(), "numpy": np.__version__,
             "numba": numba.__version__, "machine": platform.machine(),
             "cpu_count": os.cpu_count(), "repeat": args.repeat, "support": args.support,
             "overlap": args.overlap, "clock": args.clock,
             "target_us_per_vertex": TARGET_US_PER_VERTEX,
             "target_us_per_block": TARGET_US_PER_BLOCK, "load_average_end": os.getloadavg()}
-    RESULTS.write_text(json.dumps({"meta": meta, "results": records}, indent=2))
-    print(f"\nwrote {RESULTS}")
+    args.out.write_text(json.dumps({"meta": meta, "results": records}, indent=2))
+    print(f"\nwrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -1,18 +1,21 @@
-"""Regenerate the paper: run the figure scripts, build tables from JSON, fill the template.
+"""Regenerate the paper: run the figure scripts and benchmarks, build tables, fill the template.
 
-``python paper/make_paper.py [--quick] [--strict] [--reuse] [--run-external] [--no-external]
-[--no-run] [--build DIR]``
-(``make paper``, with ``PAPER_ARGS``):
+``python paper/make_paper.py [--quick] [--large] [--rerun] [--no-benchmarks] [--strict]
+[--run-external] [--no-external] [--no-run] [--build DIR]`` (``make paper``, with
+``PAPER_ARGS``):
 
-1. runs our scripts ``paper/scripts/{convergence,shell_limits,taylor,scenes,ball_sofa}.py
-   --build DIR [--quick]`` one after the other (each writes ``DIR/data/<name>.json`` and figures);
-   ``--reuse`` keeps a JSON that exists from a run in the same mode; the full mode also runs
-   ``paper/scripts/{wavelength,artefacts}.py`` when present (``--run-external``: in quick mode
-   too; ``--no-external``: never);
+1. runs the steps (:mod:`steps`), each skipped while its inputs are unchanged, so a killed
+   run resumes by being run again (``--rerun``: run all): our scripts
+   ``paper/scripts/{convergence,shell_limits,taylor,scenes,ball_sofa}.py --build DIR
+   [--quick]`` (each writes ``DIR/data/<name>.json`` and figures), in full mode also
+   ``paper/scripts/{wavelength,artefacts}.py`` (``--run-external``: in quick mode too;
+   ``--no-external``: never), and in full mode the benchmarks (:func:`benchmark_steps`) at
+   paper sizes into ``DIR/bench/`` (``--large``: at their own full sizes; quick mode or
+   ``--no-benchmarks``: none);
 2. reads the optional sources (``DIR/data/wavelength.json``, ``DIR/data/artefacts.json``,
-   ``benchmarks/results/{speed_accuracy,decomposition*,shell_kernels,shell_solve,scaling*,
+   ``DIR/bench/{speed_accuracy,decomposition*,shell_kernels,shell_solve,scaling*,
    iterative_*conv*}.json``): each gives a Markdown table in ``DIR/tables/`` and a section of the
-   paper, or the words "not run" and the command that produces it (``--strict``: an error);
+   paper, or the words "not run" and the step that produces it (``--strict``: an error);
 3. fills ``paper/paper.md.in``: ``{{source.key.path:format}}`` is a number read from the JSON
    of ``source`` (keys separated by dots, list indices as integers, ``format`` a Python format
    spec), ``{{block:name}}`` a generated table / figure / section. No number of the text is
@@ -30,12 +33,13 @@ import re
 import shutil
 import subprocess
 import sys
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from dataclasses import replace as with_fields
 from pathlib import Path
 from typing import Any
+
+from steps import Step, StepError, run_steps
 
 PAPER = Path(__file__).resolve().parent
 REPO = PAPER.parent
@@ -223,30 +227,25 @@ SOURCES: tuple[Source, ...] = (
             "on_edges.area_fraction", "on_edges.ratio", "on_edges.correlation", "wavelength",
             "amplitude")),
     Source("speed_accuracy", "Speed against accuracy (Pareto front)",
-           "benchmarks/results/speed_accuracy*.json",
-           "python benchmarks/speed_accuracy.py --resume (and --scene "
-           "scenes/ball_sofa_coarse.toml --out benchmarks/results/"
-           "speed_accuracy_ball_sofa.json, see its docstring)",
+           "{build}/bench/speed_accuracy*.json", "make paper (step speed_accuracy)",
            render=speed_accuracy_section),
     Source("decomposition", "Solving in parts against solving whole",
-           "benchmarks/results/decomposition_*.json",
-           "mpiexec -n 2 python benchmarks/decomposition.py",
+           "{build}/bench/decomposition_*.json", "make paper (step decomposition)",
            ("method", "ranks", "patches", "outer", "converged", "stopped_by", "grad_reduction",
             "energy_gap", "max_diff", "time", "speedup", "extrapolated_outer",
             "extrapolated_time"), render=decomposition_section),
     Source("shell_kernels", "Shell energy kernels",
-           "benchmarks/results/shell_kernels.json", "python benchmarks/shell_kernels.py",
+           "{build}/bench/shell_kernels.json", "make paper (step shell_kernels)",
            ("kind", "size", "reorder", "n_vertices", "terms_us_per_vertex.membrane_edge.order2",
             "terms_us_per_vertex.bending.order2", "terms_us_per_vertex.penalty.order2",
             "assembly.us_per_block", "peak_rss_mib")),
     Source("shell_solve", "Sparse direct solvers for the shell Newton system",
-           "benchmarks/results/shell_solve.json", "python benchmarks/shell_solve.py",
+           "{build}/bench/shell_solve.json", "make paper (step shell_solve)",
            ("mesh", "size", "system", "dofs", "backend", "ok", "analysis", "first", "refact",
             "solve", "negative_pivots", "mumps_mb")),
     Source("scaling", "Cost against shell size, each size in its own process (seconds; cpu = "
            "process CPU time; frames.1 = the warm-started frame; load_end.0 = one-minute load "
-           "average)", "benchmarks/results/scaling*.json",
-           "python benchmarks/scaling.py",
+           "average)", "{build}/bench/scaling*.json", "make paper (step scaling)",
            ("size", "n", "clusters", "method", "setup_cpu", "setup.hierarchy.cpu",
             "setup.clusters.cpu", "setup.energy.cpu", "frames.1.cpu", "frames.1.wall",
             "frames.1.iterations", "frames.1.cg_iterations", "peak_mib", "load_end.0")),
@@ -254,55 +253,70 @@ SOURCES: tuple[Source, ...] = (
            "(`--to-tolerance`; seconds per Newton iteration; t_iteration = wall, "
            "cpu_iteration = process CPU; "
            "energy_gap and max_vertex_diff against the direct solve)",
-           "benchmarks/results/iterative_*conv*.json",
-           "python benchmarks/iterative.py --sizes 160k --hessian exact --to-tolerance 1e-8 "
-           "--methods direct multigrid-phase-ew --repeat 2 --threads 2 --out "
-           "benchmarks/results/iterative_160k_conv_t2.json (and --threads 1, see its docstring)",
+           "{build}/bench/iterative_*conv*.json", "make paper (step iterative)",
            ("size", "n", "method", "threads", "iterations", "extra_iterations", "t_iteration",
             "cpu_iteration", "cg_iterations", "energy_gap", "max_vertex_diff",
             "true_residual_max", "peak_mib")),
 )
 
 
-# --- running the scripts ---------------------------------------------------------------------
+# --- the steps: our scripts and the benchmarks ----------------------------------------------
 
-def script_is_current(build: Path, name: str, quick: bool) -> bool:
-    """Tell whether ``data/<name>.json`` exists and was written in the same mode."""
-    path = build / "data" / f"{name}.json"
-    if not path.is_file():
-        return False
-    try:
-        return bool(json.loads(path.read_text())["meta"]["quick"]) == quick
-    except (KeyError, TypeError, ValueError):
-        return False
+BENCH_DIR = "bench"
+"""Subdirectory of the build directory where the benchmarks' JSON (and plots) go."""
+SPEED_ACCURACY_PAPER: tuple[str, ...] = ("--only", "subdivision", "hessian", "--budget", "12")
+"""The speed/accuracy sweep at paper size: the knobs that decide the presets (the subdivision
+levels give the ``preview`` / ``balanced`` / ``final`` rows), at most 12 minutes of starts."""
 
 
-def run_script(script: Path, build: Path, quick: bool) -> float:
-    """Run ``python SCRIPT --build BUILD [--quick]``; return its wall time [s]."""
-    cmd = [sys.executable, str(script), "--build", str(build)] + (["--quick"] if quick else [])
-    print(f"[paper] {' '.join(cmd[1:])}", flush=True)
-    started = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise PaperError(f"{script.relative_to(REPO)} failed (exit {proc.returncode}):\n"
-                         f"{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}")
-    return time.perf_counter() - started
-
-
-def run_scripts(args: argparse.Namespace) -> dict[str, float]:
-    """Run our scripts (and the external ones when asked); return the wall times."""
-    times: dict[str, float] = {}
+def script_steps(args: argparse.Namespace) -> list[Step]:
+    """Our figure scripts (and the external ones in full mode or with ``--run-external``)."""
     external = (args.run_external or not args.quick) and not args.no_external
-    names = list(OWN_SCRIPTS) + (list(EXTERNAL_SCRIPTS) if external else [])
-    for name in names:
-        script = PAPER / "scripts" / f"{name}.py"
-        if name in EXTERNAL_SCRIPTS and not script.is_file():
-            continue
-        if args.reuse and script_is_current(args.build, name, args.quick):
-            print(f"[paper] reuse data/{name}.json", flush=True)
-            continue
-        times[name] = run_script(script, args.build, args.quick)
-    return times
+    names = list(OWN_SCRIPTS) + [n for n in EXTERNAL_SCRIPTS
+                                 if external and (PAPER / "scripts" / f"{n}.py").is_file()]
+    quick = ("--quick",) if args.quick else ()
+    return [Step(name, ("{py}", f"paper/scripts/{name}.py", "--build", "{build}", *quick),
+                 (f"data/{name}.json",), ("paper/scripts/*.py",)) for name in names]
+
+
+def benchmark_steps(large: bool) -> list[Step]:
+    """Return the benchmarks behind the optional sections, at paper or at full sizes.
+
+    Paper sizes fit a 2-core machine (the measured minutes are in ``docs/notes/paper.md``);
+    ``large`` runs each benchmark at its own default sizes (hours).
+    """
+    out, src = "{build}/" + BENCH_DIR, ("benchmarks/*.py",)
+    quick = () if large else ("--quick",)
+    size = "160k" if large else "10k"
+
+    def step(name: str, argv: tuple[str, ...], output: str, resumable: bool = False) -> Step:
+        return Step(name, argv, (f"{BENCH_DIR}/{output}",), src, resumable)
+
+    return [
+        step("shell_kernels", ("{py}", "benchmarks/shell_kernels.py", *quick, "--out",
+                               f"{out}/shell_kernels.json"), "shell_kernels.json"),
+        step("shell_solve", ("{py}", "benchmarks/shell_solve.py", *quick,
+                             *(() if large else ("--systems", "local", "augmented")), "--out",
+                             f"{out}/shell_solve.json"), "shell_solve.json"),
+        step("scaling", ("{py}", "benchmarks/scaling.py", *quick, "--out",
+                         f"{out}/scaling.json"), "scaling.json"),
+        step("iterative", ("{py}", "benchmarks/iterative.py", "--sizes", size, "--hessian",
+                           "exact", "--to-tolerance", "1e-8", "--methods", "direct",
+                           "multigrid-phase-ew", "--out",
+                           f"{out}/iterative_{size}_conv.json"), f"iterative_{size}_conv.json"),
+        step("decomposition", ("{mpiexec}", "-n", "2", "{py}", "benchmarks/decomposition.py",
+                               *quick, "--out-dir", out), "decomposition_*.json"),
+        step("speed_accuracy", ("{py}", "benchmarks/speed_accuracy.py", "--resume",
+                                *(() if large else SPEED_ACCURACY_PAPER), "--out",
+                                f"{out}/speed_accuracy.json"), "speed_accuracy.json",
+             resumable=True),
+    ]
+
+
+def steps_of(args: argparse.Namespace) -> list[Step]:
+    """Every step ``make paper`` runs with these options, in order."""
+    benches = [] if args.quick or args.no_benchmarks else benchmark_steps(args.large)
+    return script_steps(args) + benches
 
 
 # --- data and placeholders --------------------------------------------------------------------
@@ -622,8 +636,13 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--strict", action="store_true",
                         help="fail when an optional source (benchmarks, wavelength, ...) is "
                         "missing instead of writing 'not run'")
-    parser.add_argument("--reuse", action="store_true",
-                        help="do not rerun a script whose JSON exists in the same mode")
+    parser.add_argument("--rerun", action="store_true",
+                        help="run every step, also those whose inputs did not change")
+    parser.add_argument("--large", action="store_true",
+                        help="run the benchmarks at their own full sizes (hours)")
+    parser.add_argument("--no-benchmarks", action="store_true",
+                        help="run no benchmark (their sections use existing JSON or say "
+                        "'not run')")
     parser.add_argument("--run-external", action="store_true",
                         help="run paper/scripts/wavelength.py and artefacts.py in --quick "
                         "mode too (the full mode runs them by default)")
@@ -639,7 +658,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
 def make(args: argparse.Namespace) -> Path:
     """Run everything and write ``paper.md``; return its path."""
     args.build.mkdir(parents=True, exist_ok=True)
-    times = {} if args.no_run else run_scripts(args)
+    steps = [] if args.no_run else steps_of(args)
+    try:
+        times = run_steps(args.build, steps, args.rerun)
+    except StepError as exc:
+        raise PaperError(str(exc)) from None
     data = load_own(args.build)
     blocks = own_blocks(data, args.build)
     used: dict[str, list[str]] = {}

@@ -193,6 +193,8 @@ def command_check(args: argparse.Namespace) -> int:
     resolved: dict[str, Any] = {"mesh": {"source": mesh.source, "points": int(mesh.n_points),
                                          "tets": int(mesh.n_tets)},
                                 "newton": dataclasses.asdict(scene.newton.internals)}
+    if scene.rigid is not None:
+        resolved["rigid"] = dataclasses.asdict(scene.rigid.internals.coupling)
     if scene.shell is not None:
         surface = boundary_surface(mesh.points, mesh.tets)
         resolved["shell"] = shell_report(scene.shell, scene.material, surface.vertices,

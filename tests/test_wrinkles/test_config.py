@@ -207,6 +207,20 @@ def test_retired_key_names_its_replacement(tmp_path, text, message):
     assert load_error(tmp_path, BASE + text).startswith(f"scene.toml: {message}")
 
 
+def test_expert_mappings_reach_the_solvers(tmp_path):
+    """newton.options and rigid.options set the internal options; named keys stay apart."""
+    text = BASE + "\n[[rigid.balls]]\nmass = 2.0\ncenter = [0.2, 0.2, 0.5]\n"
+    scene = load_scene(write_scene(tmp_path, text),
+                       ["rigid.options.rtol=1e-7", "newton.options.max_it=7"])
+    assert scene.rigid is not None and scene.rigid.internals.coupling.rtol == 1e-7
+    assert scene.rigid.internals.coupling.max_iterations == 30
+    assert scene.rigid.internals.balls[0].mass == 2.0
+    assert scene.newton.internals.max_it == 7 and scene.newton.internals.rtol == 1e-9
+    assert "did you mean 'rtol'" in load_error(tmp_path, text, ["rigid.options.rtl=1"])
+    assert load_error(tmp_path, text, ["newton.options.rtol=1e-3"]).endswith(
+        "newton.options.rtol: set by a named key of the scene, not here")
+
+
 def test_frames_set_the_end_time(tmp_path):
     scene = load_scene(write_scene(tmp_path, BASE + "\n[time]\nframes = 5\n"
                                    "steps_per_frame = 2\n"))

@@ -166,6 +166,7 @@ def test_time_knobs_keep_the_final_load_and_the_frame_interval():
 
 def test_paper_renders_the_pareto_and_preset_rows_of_the_json(quick, tmp_path):
     """paper/make_paper.py's speed/accuracy block: the JSON's front and presets, its numbers."""
+    load_script(REPO / "paper" / "steps.py")  # imported by make_paper from beside it
     make_paper = load_script(REPO / "paper" / "make_paper.py")
 
     doc = json.loads(quick["out"].read_text())

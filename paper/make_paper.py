@@ -47,6 +47,8 @@ TEMPLATE = PAPER / "paper.md.in"
 OWN_SCRIPTS: tuple[str, ...] = ("convergence", "shell_limits", "taylor", "scenes",
                                  "ball_sofa")
 EXTERNAL_SCRIPTS: tuple[str, ...] = ("wavelength", "artefacts")
+BENCH_DIR = "bench"
+"""Subdirectory of the build directory where the benchmarks' JSON (and plots) go."""
 PLACEHOLDER = re.compile(r"\{\{\s*([^{}:]+?)\s*(?::([^{}]*))?\}\}")
 
 
@@ -227,25 +229,25 @@ SOURCES: tuple[Source, ...] = (
             "on_edges.area_fraction", "on_edges.ratio", "on_edges.correlation", "wavelength",
             "amplitude")),
     Source("speed_accuracy", "Speed against accuracy (Pareto front)",
-           "{build}/bench/speed_accuracy*.json", "make paper (step speed_accuracy)",
+           "{build}/" + BENCH_DIR + "/speed_accuracy*.json", "make paper (step speed_accuracy)",
            render=speed_accuracy_section),
     Source("decomposition", "Solving in parts against solving whole",
-           "{build}/bench/decomposition_*.json", "make paper (step decomposition)",
+           "{build}/" + BENCH_DIR + "/decomposition_*.json", "make paper (step decomposition)",
            ("method", "ranks", "patches", "outer", "converged", "stopped_by", "grad_reduction",
             "energy_gap", "max_diff", "time", "speedup", "extrapolated_outer",
             "extrapolated_time"), render=decomposition_section),
     Source("shell_kernels", "Shell energy kernels",
-           "{build}/bench/shell_kernels.json", "make paper (step shell_kernels)",
+           "{build}/" + BENCH_DIR + "/shell_kernels.json", "make paper (step shell_kernels)",
            ("kind", "size", "reorder", "n_vertices", "terms_us_per_vertex.membrane_edge.order2",
             "terms_us_per_vertex.bending.order2", "terms_us_per_vertex.penalty.order2",
             "assembly.us_per_block", "peak_rss_mib")),
     Source("shell_solve", "Sparse direct solvers for the shell Newton system",
-           "{build}/bench/shell_solve.json", "make paper (step shell_solve)",
+           "{build}/" + BENCH_DIR + "/shell_solve.json", "make paper (step shell_solve)",
            ("mesh", "size", "system", "dofs", "backend", "ok", "analysis", "first", "refact",
             "solve", "negative_pivots", "mumps_mb")),
     Source("scaling", "Cost against shell size, each size in its own process (seconds; cpu = "
            "process CPU time; frames.1 = the warm-started frame; load_end.0 = one-minute load "
-           "average)", "{build}/bench/scaling*.json", "make paper (step scaling)",
+           "average)", "{build}/" + BENCH_DIR + "/scaling*.json", "make paper (step scaling)",
            ("size", "n", "clusters", "method", "setup_cpu", "setup.hierarchy.cpu",
             "setup.clusters.cpu", "setup.energy.cpu", "frames.1.cpu", "frames.1.wall",
             "frames.1.iterations", "frames.1.cg_iterations", "peak_mib", "load_end.0")),
@@ -253,7 +255,7 @@ SOURCES: tuple[Source, ...] = (
            "(`--to-tolerance`; seconds per Newton iteration; t_iteration = wall, "
            "cpu_iteration = process CPU; "
            "energy_gap and max_vertex_diff against the direct solve)",
-           "{build}/bench/iterative_*conv*.json", "make paper (step iterative)",
+           "{build}/" + BENCH_DIR + "/iterative_*conv*.json", "make paper (step iterative)",
            ("size", "n", "method", "threads", "iterations", "extra_iterations", "t_iteration",
             "cpu_iteration", "cg_iterations", "energy_gap", "max_vertex_diff",
             "true_residual_max", "peak_mib")),
@@ -262,8 +264,6 @@ SOURCES: tuple[Source, ...] = (
 
 # --- the steps: our scripts and the benchmarks ----------------------------------------------
 
-BENCH_DIR = "bench"
-"""Subdirectory of the build directory where the benchmarks' JSON (and plots) go."""
 SPEED_ACCURACY_PAPER: tuple[str, ...] = ("--only", "subdivision", "hessian", "--budget", "12")
 """The speed/accuracy sweep at paper size: the knobs that decide the presets (the subdivision
 levels give the ``preview`` / ``balanced`` / ``final`` rows), at most 12 minutes of starts."""
@@ -285,31 +285,28 @@ def benchmark_steps(large: bool) -> list[Step]:
     Paper sizes fit a 2-core machine (the measured minutes are in ``docs/notes/paper.md``);
     ``large`` runs each benchmark at its own default sizes (hours).
     """
-    out, src = "{build}/" + BENCH_DIR, ("benchmarks/*.py",)
+    out = "{build}/" + BENCH_DIR
     quick = () if large else ("--quick",)
     size = "160k" if large else "10k"
 
-    def step(name: str, argv: tuple[str, ...], output: str, resumable: bool = False) -> Step:
-        return Step(name, argv, (f"{BENCH_DIR}/{output}",), src, resumable)
+    def step(name: str, args: tuple[str, ...], output: str, launcher: tuple[str, ...] = (),
+             resumable: bool = False) -> Step:
+        """``benchmarks/<name>.py ARGS --out DIR/OUTPUT`` (``--out-dir DIR`` for a glob)."""
+        target = ("--out-dir", out) if "*" in output else ("--out", f"{out}/{output}")
+        return Step(name, (*launcher, "{py}", f"benchmarks/{name}.py", *args, *target),
+                    (f"{BENCH_DIR}/{output}",), ("benchmarks/*.py",), resumable)
 
     return [
-        step("shell_kernels", ("{py}", "benchmarks/shell_kernels.py", *quick, "--out",
-                               f"{out}/shell_kernels.json"), "shell_kernels.json"),
-        step("shell_solve", ("{py}", "benchmarks/shell_solve.py", *quick,
-                             *(() if large else ("--systems", "local", "augmented")), "--out",
-                             f"{out}/shell_solve.json"), "shell_solve.json"),
-        step("scaling", ("{py}", "benchmarks/scaling.py", *quick, "--out",
-                         f"{out}/scaling.json"), "scaling.json"),
-        step("iterative", ("{py}", "benchmarks/iterative.py", "--sizes", size, "--hessian",
-                           "exact", "--to-tolerance", "1e-8", "--methods", "direct",
-                           "multigrid-phase-ew", "--out",
-                           f"{out}/iterative_{size}_conv.json"), f"iterative_{size}_conv.json"),
-        step("decomposition", ("{mpiexec}", "-n", "2", "{py}", "benchmarks/decomposition.py",
-                               *quick, "--out-dir", out), "decomposition_*.json"),
-        step("speed_accuracy", ("{py}", "benchmarks/speed_accuracy.py", "--resume",
-                                *(() if large else SPEED_ACCURACY_PAPER), "--out",
-                                f"{out}/speed_accuracy.json"), "speed_accuracy.json",
-             resumable=True),
+        step("shell_kernels", quick, "shell_kernels.json"),
+        step("shell_solve", (*quick, *(() if large else ("--systems", "local", "augmented"))),
+             "shell_solve.json"),
+        step("scaling", quick, "scaling.json"),
+        step("iterative", ("--sizes", size, "--hessian", "exact", "--to-tolerance", "1e-8",
+                           "--methods", "direct", "multigrid-phase-ew"),
+             f"iterative_{size}_conv.json"),
+        step("decomposition", quick, "decomposition_*.json", launcher=("{mpiexec}", "-n", "2")),
+        step("speed_accuracy", ("--resume", *(() if large else SPEED_ACCURACY_PAPER)),
+             "speed_accuracy.json", resumable=True),
     ]
 
 

@@ -21,6 +21,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parent.parent
 LIBRARY: tuple[str, ...] = ("models", "solvers", "meshes", "wrinkles", "validation", "scenes")
@@ -58,27 +59,36 @@ class Step:
                   "mpiexec": str(Path(sys.executable).with_name("mpiexec"))}
         return [a.format(**values) for a in self.argv]
 
-    def digest(self) -> str:
-        """Return the SHA-256 of the command line (unfilled) and of every file it depends on."""
+    def digest(self, library: str | None = None) -> str:
+        """Return the SHA-256 of the command line (unfilled) and of every file it depends on.
+
+        ``library`` is :func:`library_digest`, computed once for all steps of a run (``None``:
+        computed here).
+        """
         h = hashlib.sha256("\0".join(self.argv).encode())
-        for path in input_files(self.sources):
-            h.update(str(path.relative_to(REPO)).encode() + b"\0" + path.read_bytes())
-        return h.hexdigest()
+        h.update((library or library_digest()).encode())
+        return files_digest(h, [p for pattern in self.sources for p in sorted(REPO.glob(pattern))])
 
     def complete(self, build: Path) -> bool:
         """Tell whether every output pattern matches a file under ``build``."""
         return all(glob.glob(str(build / pattern)) for pattern in self.outputs)
 
 
-def input_files(sources: Sequence[str]) -> list[Path]:
-    """Return the library's ``.py``/``.toml`` files, the lock file and ``sources``, sorted."""
+def files_digest(h: Any, files: Sequence[Path]) -> str:
+    """Add each file's path (relative to the repository) and content to ``h``; its hex digest."""
+    for path in files:
+        if path.is_file() and "__pycache__" not in path.parts:
+            h.update(str(path.relative_to(REPO)).encode() + b"\0" + path.read_bytes())
+    return str(h.hexdigest())
+
+
+def library_digest() -> str:
+    """Return the SHA-256 of the lock file and the library's ``.py``/``.toml`` files."""
     files = {REPO / "requirements.lock"}
     for folder in LIBRARY:
         for suffix in ("py", "toml"):
             files.update((REPO / folder).rglob(f"*.{suffix}"))
-    for pattern in sources:
-        files.update(REPO.glob(pattern))
-    return sorted(f for f in files if f.is_file() and "__pycache__" not in f.parts)
+    return files_digest(hashlib.sha256(), sorted(files))
 
 
 def stamp_path(build: Path, step: Step) -> Path:
@@ -103,14 +113,13 @@ def write_stamp(build: Path, step: Step, digest: str, seconds: float | None) -> 
                                 "seconds": seconds, "argv": list(step.argv)}, indent=1))
 
 
-def is_current(build: Path, step: Step) -> bool:
-    """Tell whether ``step`` ran to the end with the same digest and its outputs are there."""
+def is_current(build: Path, step: Step, digest: str) -> bool:
+    """Tell whether ``step`` ran to the end with ``digest`` and its outputs are there."""
     stamp = read_stamp(build, step)
-    return bool(stamp.get("done")) and stamp.get("digest") == step.digest() \
-        and step.complete(build)
+    return bool(stamp.get("done")) and stamp.get("digest") == digest and step.complete(build)
 
 
-def run_step(build: Path, step: Step, label: str) -> float:
+def run_step(build: Path, step: Step, label: str, digest: str) -> float:
     """Run ``step`` and stamp it.
 
     Outputs of an earlier attempt are removed first, unless the step is resumable and that
@@ -120,6 +129,7 @@ def run_step(build: Path, step: Step, label: str) -> float:
         build: the build directory.
         step: the step.
         label: progress prefix, e.g. ``"(3/12)"``.
+        digest: the step's :meth:`Step.digest`.
 
     Returns:
         Its wall time [s].
@@ -128,7 +138,6 @@ def run_step(build: Path, step: Step, label: str) -> float:
         StepError: non-zero exit; the message holds the end of its output.
 
     """
-    digest = step.digest()
     if not (step.resumable and read_stamp(build, step).get("digest") == digest):
         for pattern in step.outputs:
             for old in glob.glob(str(build / pattern)):
@@ -152,10 +161,11 @@ def run_step(build: Path, step: Step, label: str) -> float:
 def run_steps(build: Path, steps: Sequence[Step], rerun: bool = False) -> dict[str, float]:
     """Run the steps in order, skipping the current ones unless ``rerun``; their wall times."""
     times: dict[str, float] = {}
+    library = library_digest()
     for i, step in enumerate(steps, 1):
-        label = f"({i}/{len(steps)})"
-        if not rerun and is_current(build, step):
+        label, digest = f"({i}/{len(steps)})", step.digest(library)
+        if not rerun and is_current(build, step, digest):
             print(f"[paper] {label} {step.name}: inputs unchanged, reused", flush=True)
             continue
-        times[step.name] = run_step(build, step, label)
+        times[step.name] = run_step(build, step, label, digest)
     return times

@@ -221,11 +221,12 @@ def test_expert_mappings_reach_the_solvers(tmp_path):
         "newton.options.rtol: set by a named key of the scene, not here")
 
 
-def test_frames_set_the_end_time(tmp_path):
+def test_time_reads_frames_and_defaults_to_one_frame(tmp_path):
     scene = load_scene(write_scene(tmp_path, BASE + "\n[time]\nframes = 5\n"
                                    "steps_per_frame = 2\n"))
-    assert scene.time.frames * scene.time.steps_per_frame * scene.body.dt == \
-        pytest.approx(0.1)  # 5 frames x 2 steps x 0.01 s
+    assert (scene.time.frames, scene.time.steps_per_frame) == (5, 2)
+    default = load_scene(write_scene(tmp_path, BASE, "plain.toml")).time
+    assert (default.frames, default.steps_per_frame) == (1, 1)
 
 
 def test_invalid_toml_names_file(tmp_path):

@@ -14,7 +14,11 @@ run's ``summary.json`` the table reports per scene and code:
   on an idle core has CPU = wall) and wall time, and seconds per frame;
 * the process's total user + system CPU (``resource.getrusage`` of the child: set-up, JIT and
   output included);
-* the final shell energy and the frames whose shell solve did not converge.
+* the final shell energy and the frames whose shell solve did not converge;
+* with ``--ranks 1 2``: each run under ``mpiexec -n N`` (the venv's), every rank count of a
+  scene side by side; the frames' wall time is then the measure (the frames' CPU is rank 0's),
+  with the speed-up against the first rank count of the same code and the peak resident
+  memory of the largest rank (``peak_memory_mb`` of the summary, when the code records it).
 
 Writes ``benchmarks/results/product_frames.json`` (``--out``). Timings on a shared machine are
 contended; the load average is recorded before and after every run.
@@ -25,6 +29,8 @@ Usage::
     python benchmarks/product_frames.py --scenes default ball_sofa_coarse --before HEAD~1
     python benchmarks/product_frames.py --scenes default --frames 1 \\
         --set shell.subdivision.levels=4 --before 17b4608
+    python benchmarks/product_frames.py --scenes default ball_sofa_coarse --ranks 1 2 \\
+        --set shell.solver.threads=1 --before HEAD~1
 """
 
 from __future__ import annotations
@@ -67,10 +73,17 @@ def drop_worktree(path: Path) -> None:
                    check=False, capture_output=True)
 
 
+def mpiexec() -> str:
+    """The ``mpiexec`` next to this interpreter (the venv's), else the one on ``PATH``."""
+    beside = Path(sys.executable).with_name("mpiexec")
+    return str(beside) if beside.exists() else (shutil.which("mpiexec") or "mpiexec")
+
+
 def run_cli(code: Path, scene: Path, out: Path, frames: int | None,
-            overrides: list[str], timeout: float) -> dict[str, Any]:
-    """Run the CLI of the tree ``code`` on ``scene``; return the row of that run."""
-    cmd = [sys.executable, "-m", "wrinkles", "run", str(scene), "--out", str(out),
+            overrides: list[str], timeout: float, ranks: int = 1) -> dict[str, Any]:
+    """Run the CLI of the tree ``code`` on ``scene`` (on ``ranks`` MPI ranks); its row."""
+    launch = [mpiexec(), "-n", str(ranks)] if ranks > 1 else []
+    cmd = [*launch, sys.executable, "-m", "wrinkles", "run", str(scene), "--out", str(out),
            "--overwrite", "--set", "output.render=false"]
     cmd += ["--frames", str(frames)] if frames else []
     for item in overrides:
@@ -110,28 +123,33 @@ def summary_row(summary: dict[str, Any]) -> dict[str, Any]:
         "shell_energy": [d.get("shell_energy") for d in details],
         "unconverged": [f["frame"] for f, d in zip(frames, details, strict=True)
                         if d.get("shell_converged") is False],
-        "method": solver.get("method", "direct"), "threads": solver.get("threads", 1)}
+        "method": solver.get("method", "direct"), "threads": solver.get("threads", 1),
+        "peak_memory_mb": max(summary.get("run", {}).get("peak_memory_mb") or [0.0]) or None}
 
 
 def print_row(scene: str, label: str, r: dict[str, Any]) -> None:
     """One line of the table."""
     if r["exit"] != 0:
-        print(f"{scene:>18} {label:>8}  FAILED (exit {r['exit']}): {' '.join(r['error'])}")
+        print(f"{scene:>18} {label:>8} {r['ranks']:>2}  FAILED (exit {r['exit']}): "
+              f"{' '.join(r['error'])}")
         return
     n = max(r["frames"], 1)
     cpu = r["frames_cpu"]
     shown, mark = (cpu, " ") if cpu is not None else (r["frames_wall"], "*")
     failed, total = sum(r["failed_factorizations"]), sum(r["factorizations"])
-    print(f"{scene:>18} {label:>8} {r['method']:>9} {r['threads']:>3} {r['frames']:>3} "
-          f"{sum(r['shell_iterations']):>6} {total:>6} {failed:>6} {shown:9.2f}{mark} "
-          f"{shown / n:8.2f} {r['frames_wall']:8.2f} {r['process_cpu']:8.2f} "
-          f"{(r['shell_energy'] or [float('nan')])[-1]:12.6e} {r['unconverged'] or ''}",
-          flush=True)
+    speedup = f"{r['speedup']:5.2f}x" if r.get("speedup") else f"{'-':>6}"
+    memory = f"{r['peak_memory_mb']:7.0f}" if r.get("peak_memory_mb") else f"{'-':>7}"
+    print(f"{scene:>18} {label:>8} {r['ranks']:>2} {r['method']:>9} {r['threads']:>3} "
+          f"{r['frames']:>3} {sum(r['shell_iterations']):>6} {total:>6} {failed:>6} "
+          f"{shown:9.2f}{mark} {shown / n:8.2f} {r['frames_wall']:8.2f} {speedup} {memory} "
+          f"{r['process_cpu']:8.2f} {(r['shell_energy'] or [float('nan')])[-1]:12.6e} "
+          f"{r['unconverged'] or ''}", flush=True)
 
 
-HEADER = (f"{'scene':>18} {'code':>8} {'method':>9} {'thr':>3} {'frm':>3} {'its':>6} "
-          f"{'facts':>6} {'failed':>6} {'frames s':>10} {'s/frame':>8} {'wall s':>8} "
-          f"{'proc CPU':>8} {'final W':>12} unconverged")
+HEADER = (f"{'scene':>18} {'code':>8} {'np':>2} {'method':>9} {'thr':>3} {'frm':>3} "
+          f"{'its':>6} {'facts':>6} {'failed':>6} {'frames s':>10} {'s/frame':>8} "
+          f"{'wall s':>8} {'speed':>6} {'mem MB':>7} {'proc CPU':>8} {'final W':>12} "
+          "unconverged")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -143,6 +161,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--frames", type=int, default=None, help="frames per run (scene's own)")
     p.add_argument("--set", dest="overrides", action="append", default=[],
                    metavar="KEY=VALUE", help="scene override for both codes (repeatable)")
+    p.add_argument("--ranks", type=int, nargs="+", default=[1],
+                   help="MPI rank counts to run each scene on (mpiexec -n N for N > 1)")
     p.add_argument("--timeout", type=float, default=3600.0, help="seconds per run")
     p.add_argument("--out", type=Path, default=RESULTS)
     return p.parse_args(argv)
@@ -157,18 +177,23 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         codes.append((args.before, worktree(args.before, tmp)))
     doc: dict[str, Any] = {"machine": platform.node(), "cores": os.cpu_count(),
                            "before": args.before, "frames": args.frames,
-                           "overrides": args.overrides, "rows": []}
+                           "overrides": args.overrides, "ranks": args.ranks, "rows": []}
     print(HEADER)
     try:
         for scene in args.scenes:
-            for label, code in codes:
-                row = run_cli(code, scene_path(scene), tmp / "out", args.frames,
-                              args.overrides, args.timeout)
-                row.update(scene=scene, code=label)
-                doc["rows"].append(row)
-                print_row(scene, label, row)
-                args.out.parent.mkdir(parents=True, exist_ok=True)
-                args.out.write_text(json.dumps(doc, indent=1))
+            first: dict[str, float] = {}  # frames' wall time at the first rank count, per code
+            for ranks in args.ranks:
+                for label, code in codes:
+                    row = run_cli(code, scene_path(scene), tmp / "out", args.frames,
+                                  args.overrides, args.timeout, ranks)
+                    row.update(scene=scene, code=label, ranks=ranks)
+                    if row["exit"] == 0:
+                        first.setdefault(label, row["frames_wall"])
+                        row["speedup"] = first[label] / row["frames_wall"]
+                    doc["rows"].append(row)
+                    print_row(scene, label, row)
+                    args.out.parent.mkdir(parents=True, exist_ok=True)
+                    args.out.write_text(json.dumps(doc, indent=1))
     finally:
         for _label, code in codes[1:]:
             drop_worktree(code)

@@ -231,6 +231,27 @@ def eisenstat_walker(grad_norm: float, previous_norm: float, previous_eta: float
     return float(min(options.ew_max, max(eta, options.rtol)))
 
 
+def forcing_term(options: MultigridOptions, grad_norm: float, history: tuple[float, float],
+                 target: float = 0.0) -> tuple[float, tuple[float, float]]:
+    """CG tolerance of a Newton iteration and the new ``(||g||, eta)`` history.
+
+    ``forcing = "fixed"``: ``rtol``; "eisenstat_walker": :func:`eisenstat_walker` from the
+    previous iteration's ``history`` (``(0, ew_max)`` at the start of a solve). With
+    ``target_fraction`` and the Newton gradient tolerance ``target`` (> 0) the tolerance is
+    raised to ``min(ew_max, target_fraction target / ||g_k||)`` when that is larger: the
+    linearised gradient after the step, ``||g_k + A dx|| <= eta ||g_k||``, then already lies
+    below ``target_fraction`` times the tolerance.
+    """
+    if options.forcing == "fixed":
+        eta = options.rtol
+    else:
+        eta = eisenstat_walker(grad_norm, history[0], history[1], options)
+        history = (grad_norm, eta)
+    if options.target_fraction > 0 and target > 0 and grad_norm > 0:
+        eta = max(eta, min(options.ew_max, options.target_fraction * target / grad_norm))
+    return eta, history
+
+
 class _LowRankOperator:
     """``MatPython`` context of ``A + G^T G`` (A a PETSc matrix, G the penalty factor).
 
@@ -342,7 +363,7 @@ def _vertex_rows(lo: int, hi: int, indptr: np.ndarray, indices: np.ndarray, data
             y[3 * c], y[3 * c + 1], y[3 * c + 2] = a0, a1, a2
 
 
-class _Jacobi:
+class JacobiPC:
     """``PCPython`` context ``y = D^{-1} x`` with D refreshed in place (``refresh``).
 
     Used with ``eigen_estimate = "solve"``: the level operator keeps its PETSc object state,
@@ -603,6 +624,28 @@ class NewtonSystem(Protocol):
         """Accumulated (factorise, analysis, solve) seconds."""
 
 
+class KrylovSystem(NewtonSystem, Protocol):
+    """A Newton-system solver by CG to a forcing term (serial or distributed multigrid).
+
+    Attributes:
+        stats: Counts and times of its set-ups and solves.
+        phase: The wrinkle-phase coarse space, or None.
+
+    """
+
+    stats: KrylovStats
+    phase: Any
+
+    def reset_forcing(self) -> None:
+        """Start a new Newton solve (no forcing history)."""
+
+    def set_gradient_norm(self, grad_norm: float, target: float = 0.0) -> None:
+        """Choose this Newton iteration's CG tolerance from ``||g_k||``."""
+
+    def set_state(self, x: np.ndarray, target: np.ndarray | None) -> None:
+        """Positions and penalty target of the next set-up."""
+
+
 class MultigridLinearSystem:
     """CG + geometric multigrid (PETSc PCMG) for ``(A + tau I + G^T G) dx = b``.
 
@@ -645,7 +688,7 @@ class MultigridLinearSystem:
         self._coarse_pattern: sp.csr_matrix | None = None
         self._ksp: Any = None
         self._current: tuple[Any, float] | None = None
-        self._jacobi: list[_Jacobi] = []
+        self._jacobi: list[JacobiPC] = []
         self._products: list[_LowRankOperator] = []
         self._sbaij: list[_SymmetricCopy] = []
         self._estimate_due = True
@@ -880,7 +923,7 @@ class MultigridLinearSystem:
         # the level smoothers read the options database during the first PCSetUp only
         smoother_pc = "python" if self.options.eigen_estimate == "solve" \
             else self.options.smoother_pc
-        values = _pcmg_options(self.options.smoother_degree, smoother_pc)
+        values = pcmg_options(self.options.smoother_degree, smoother_pc)
         db = PETSc.Options()
         for key, value in values.items():
             db.setValue(prefix + key, value)
@@ -894,11 +937,11 @@ class MultigridLinearSystem:
         return ksp
 
     def _python_jacobi(self, pc: Any) -> None:
-        """``eigen_estimate = "solve"``: the fine levels' Jacobi as :class:`_Jacobi` PCs."""
+        """``eigen_estimate = "solve"``: the fine levels' Jacobi as :class:`JacobiPC` PCs."""
         if self.options.eigen_estimate != "solve":
             self._jacobi = []
             return
-        self._jacobi = [_Jacobi(op) for op in self._operators[1:]]
+        self._jacobi = [JacobiPC(op) for op in self._operators[1:]]
         for level, jacobi in enumerate(self._jacobi, start=1):
             level_pc = pc.getMGSmoother(level).getPC()
             level_pc.setType(PETSc.PC.Type.PYTHON)
@@ -926,16 +969,8 @@ class MultigridLinearSystem:
         lies below ``target_fraction`` times the tolerance.
         """
         self._bounds_stale = True
-        if self.options.forcing == "fixed":
-            eta = self.options.rtol
-        else:
-            previous_norm, previous_eta = self._grad_history
-            eta = eisenstat_walker(grad_norm, previous_norm, previous_eta, self.options)
-            self._grad_history = (grad_norm, eta)
-        if self.options.target_fraction > 0 and target > 0 and grad_norm > 0:
-            eta = max(eta, min(self.options.ew_max,
-                               self.options.target_fraction * target / grad_norm))
-        self.eta = eta
+        self.eta, self._grad_history = forcing_term(self.options, grad_norm,
+                                                    self._grad_history, target)
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """Return ``(A + tau I + G^T G) x`` of the current system (scipy; true residuals)."""
@@ -1015,7 +1050,7 @@ class MultigridLinearSystem:
                 self.stats.solve_time - self.stats.fallback_time + direct[2])
 
 
-def _pcmg_options(degree: int, smoother_pc: str) -> dict[str, str]:
+def pcmg_options(degree: int, smoother_pc: str) -> dict[str, str]:
     """PETSc options (below the solver's prefix) of the level smoothers and the coarse solve."""
     return {
         "mg_levels_ksp_type": "chebyshev",

@@ -168,7 +168,7 @@ class PhaseSpace:
         """Z's values from the positions x and the penalty target y (both ``(n, 3)``)."""
         d = np.asarray(x, dtype=np.float64).reshape(-1, 3) - target
         grads = np.stack([g @ d for g in self.gradients], axis=-1)      # (n, 3 comp, 3 dir)
-        _z_values(self.values, self.hat_value, self.vertex, self.component, self.field,
+        z_values(self.values, self.hat_value, self.vertex, self.component, self.field,
                   self.hat, self.frames, d, grads)
         norms = np.bincount(self.column, self.values ** 2, self.n_columns)
         scale = np.where(norms > 0, 1.0 / np.sqrt(np.where(norms > 0, norms, 1.0)), 0.0)
@@ -249,7 +249,7 @@ class PhaseSpace:
 
 
 @numba.njit(cache=True)
-def _z_values(out: np.ndarray, hat_value: np.ndarray, vertex: np.ndarray, component: np.ndarray,
+def z_values(out: np.ndarray, hat_value: np.ndarray, vertex: np.ndarray, component: np.ndarray,
               field: np.ndarray, hat: np.ndarray, frames: np.ndarray, d: np.ndarray,
               grads: np.ndarray) -> None:  # pragma: no cover (compiled)
     """Z's values: ``hat * d[v, c]`` (field 0) or ``hat * frame_{j, m-1} . grad d[v, c]``."""

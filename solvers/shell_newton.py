@@ -57,6 +57,7 @@ from solvers.linear import (
     factorize_with_shift,
 )
 from solvers.multigrid import (
+    KrylovSystem,
     MultigridLinearSystem,
     MultigridOptions,
     NewtonSystem,
@@ -525,7 +526,7 @@ class ShellNewtonSolver:
         self.options = options or ShellNewtonOptions()
         self.direct = _LinearSystem(self.options)
         self.linear: NewtonSystem = self.direct
-        self.krylov: MultigridLinearSystem | None = None
+        self.krylov: KrylovSystem | None = None
         if self.options.linear_method == "multigrid":
             if hierarchy is None:
                 raise InputError("ShellNewtonOptions.linear_method: 'multigrid' needs the "

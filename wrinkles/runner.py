@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import resource
 import shlex
 import shutil
 import sys
@@ -591,6 +592,11 @@ def make_record(frame: int, values: dict[str, Any], stage_times: dict[str, float
                        details=details, **core)
 
 
+def peak_memory_mb() -> float:
+    """Peak resident memory of this process so far [MiB] (``ru_maxrss``, KiB on Linux)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def write_summary(run: Run) -> None:
     """Rewrite ``summary.json`` atomically on rank 0."""
     if run.comm.rank == 0:
@@ -621,6 +627,7 @@ def run_frames(run: Run, log: Callable[[str], None] = print) -> Run:
             log(record.progress_line(run.n_frames, run.scene.body.dynamics == "static"))
     run.facts["status"] = "completed"
     run.facts["wall_time"] = time.perf_counter() - run.started
+    run.facts["peak_memory_mb"] = run.comm.allgather(peak_memory_mb())
     write_summary(run)
     if run.comm.rank == 0:
         shutil.rmtree(run.out / WORK_DIR, ignore_errors=True)

@@ -52,6 +52,8 @@ from models.shell.stiffness import ShellMaterial, shell_stiffness
 from models.shell.topology import ShellTopology
 from solvers.body import Body
 from solvers.coupling import CouplingOptions
+from solvers.decomposition.patch_energy import ShellProblem
+from solvers.decomposition.split_newton import SplitNewtonSolver
 from solvers.multigrid import ShellHierarchy
 from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver
 from solvers.solver_choice import choose_linear_method, choose_threads
@@ -368,8 +370,9 @@ class Shell:
         rest: ``(n, 3)`` rest positions X_T (= B X_q).
         embedding: B for the body's displacement space.
         clusters: clusters, H and partition.
-        energy: the shell energy (its target is the current y).
-        solver: the Newton solver (reused over frames).
+        energy: the shell energy (its target is the current y), whole on every rank.
+        solver: the Newton solver (reused over frames): serial on one rank, split over the
+            ranks otherwise (:func:`shell_solver`).
         x: ``(n, 3)`` current shell positions.
         y: ``(n, 3)`` current target.
         normals: ``(n, 3)`` rest vertex normals (imperfection direction).
@@ -391,7 +394,7 @@ class Shell:
     embedding: Embedding
     clusters: Clusters
     energy: ShellEnergy
-    solver: ShellNewtonSolver
+    solver: ShellNewtonSolver | SplitNewtonSolver
     x: np.ndarray
     y: np.ndarray
     normals: np.ndarray
@@ -410,6 +413,12 @@ class Shell:
     def params(self) -> ShellParams:
         """The stiffnesses in use."""
         return self.energy.params
+
+    def set_target(self, y: np.ndarray) -> None:
+        """Move the penalty target of the energy and of a split solver's local energies."""
+        self.energy.set_target(y)
+        if isinstance(self.solver, SplitNewtonSolver):
+            self.solver.set_target(y)
 
 
 BYTES_PER_VERTEX: dict[str, float] = {"direct": 26e3, "multigrid": 9e3}
@@ -523,6 +532,26 @@ def sizing_warnings(options: ShellOptions, clusters: Clusters, material: Materia
     return out
 
 
+def shell_solver(energy: ShellEnergy, options: ShellNewtonOptions, hierarchy: ShellHierarchy,
+                 clusters: Clusters, comm: MPI.Comm) -> ShellNewtonSolver | SplitNewtonSolver:
+    """Return the shell's Newton solver for the ranks of ``comm`` (collective).
+
+    One rank: :class:`solvers.shell_newton.ShellNewtonSolver`. More: the Newton split over
+    the ranks (:class:`solvers.decomposition.split_newton.SplitNewtonSolver`), each rank
+    owning the vertices of its share of the clusters (``clusters.partition`` merged to the
+    rank count), with the same linear method: the distributed MUMPS LDL^T or the
+    distributed multigrid CG (:mod:`solvers.decomposition.split_multigrid`, without the
+    serial solver's wrinkle-phase coarse space).
+    """
+    if comm.size == 1:
+        return ShellNewtonSolver(energy, options,  # type: ignore[arg-type]
+                                 hierarchy=hierarchy)
+    problem = ShellProblem(energy.topology, energy.rest, energy.params, clusters.H,
+                           energy.target)
+    return SplitNewtonSolver(problem, clusters.partition, options, comm,
+                             prolongations=hierarchy.prolongations())
+
+
 def build_shell(body: Body, options: ShellOptions, material: Material,
                 log: Callable[[str], None] = lambda text: None, source: str = "the mesh") -> Shell:
     """Surface -> subdivision -> rest shell, B, clusters and H, energy and solver (collective).
@@ -558,10 +587,11 @@ def build_shell(body: Body, options: ShellOptions, material: Material,
         raise InputError(f"{source}: its surface makes a shell the solver cannot use ({exc}); "
                          f"remesh the body (mesh.file) or refine it (mesh.params.h)") from None
     energy = ShellEnergy(topology, rest_state, params, clusters.H)
-    solver = ShellNewtonSolver(energy, options.internals.newton,  # type: ignore[arg-type]
-                               hierarchy=ShellHierarchy(sub))
+    solver = shell_solver(energy, options.internals.newton, ShellHierarchy(sub), clusters,
+                          body.mesh.comm)
+    split = f" split over {body.mesh.comm.size} ranks" if body.mesh.comm.size > 1 else ""
     log(f"shell: energy and solver ({options.solver.method}, {options.solver.threads} "
-        f"thread(s))")
+        f"thread(s){split})")
     facts = {"vertices": int(rest.shape[0]), "faces": int(sub.faces.shape[0]),
              "coarse_surface_vertices": int(surface.vertices.shape[0]),
              "mean_edge_length": a, "solver": {"method": options.solver.method,

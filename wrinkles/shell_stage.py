@@ -9,8 +9,10 @@ Per frame, after the body step:
 ``eta_k`` is a tiny deterministic imperfection along the rest vertex normals (``imperfection``
 times the mean rest edge length, seeded by the frame number): a flat face compressed exactly in
 its plane is a stationary point of W, so without it no wrinkle can form. The shell is solved
-redundantly on every rank and rank 0's result broadcast, so it is independent of the number of
-ranks. The set-up is :mod:`wrinkles.shell_setup`, two-way coupling :mod:`wrinkles.two_way`.
+by :attr:`Shell.solver`: on one rank the serial Newton, on more the Newton split over the ranks
+(each evaluates its own vertices' stencils and holds their rows of the distributed Newton
+system; every rank ends with the same x). The set-up is :mod:`wrinkles.shell_setup`, two-way
+coupling :mod:`wrinkles.two_way`.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from models.embedding.embedding import apply_to_function
 from models.shell.energy import ShellEnergy
 from models.shell.rest import vertex_normals
 from solvers.body import Body
+from solvers.decomposition.split_newton import SplitNewtonSolver
 from solvers.shell_newton import (
     ShellNewtonOptions,
     ShellNewtonSolver,
@@ -53,7 +56,7 @@ def imperfection(shell: Shell, frame: int) -> np.ndarray:
     return amp * rng.standard_normal((shell.x.shape[0], 1)) * shell.normals
 
 
-def scale_tolerance(shell: Shell, solver: ShellNewtonSolver, x0: np.ndarray,
+def scale_tolerance(shell: Shell, solver: ShellNewtonSolver | SplitNewtonSolver, x0: np.ndarray,
                     options: ShellNewtonOptions) -> None:
     """Give ``solver`` the options with the largest initial gradient so far as reference.
 
@@ -139,7 +142,7 @@ def warm_start(shell: Shell, y: np.ndarray, frame: int, perturb: bool = True) ->
     """
     eta = imperfection(shell, frame) if perturb else 0.0
     x0 = shell.x + (y - shell.y) + eta
-    shell.energy.set_target(y)
+    shell.set_target(y)
     x0, shell.start_repaired = admissible_start(shell.energy, x0, y + eta)
     return x0
 
@@ -148,14 +151,12 @@ def solve_shell(shell: Shell, y: np.ndarray, frame: int, comm: MPI.Comm,
                 perturb: bool = True) -> ShellSolveReport:
     """Move the target to ``y``, warm-start, minimise, take rank 0's x (collective).
 
-    Every rank solves the same problem redundantly (serial solvers on ``COMM_SELF``; a
-    rank-0-only solve no longer deadlocks since the PETSc log is begun at import,
-    :func:`models.backend.begin_petsc_log`, but would leave the other ranks idle), then
-    rank 0's result is broadcast so all ranks hold bitwise the same shell. ``perturb =
-    False`` leaves out the imperfection (repeated solves of one frame in the coupling
-    iteration). A warm start with a face turned over against the new target's normals is
-    repaired first (:func:`admissible_start`; ``shell.start_repaired`` counts the vertices
-    moved).
+    The ranks solve together (:attr:`Shell.solver`, split over the ranks when there are
+    several), then rank 0's result is broadcast so all ranks hold bitwise the same shell.
+    ``perturb = False`` leaves out the imperfection (repeated solves of one frame in the
+    coupling iteration). A warm start with a face turned over against the new target's
+    normals is repaired first (:func:`admissible_start`; ``shell.start_repaired`` counts the
+    vertices moved).
     """
     x, report = _minimize(shell, warm_start(shell, y, frame, perturb))
     shell.x, shell.y = np.asarray(comm.bcast(x, root=0)), y

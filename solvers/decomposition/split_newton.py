@@ -45,7 +45,8 @@ from models.shell.dofs import stencil_dofs
 from models.shell.energy import ShellEval
 from models.shell.penalty import PenaltyOperator, penalty_factor
 from solvers.decomposition.patch_energy import PatchEnergy, ShellProblem
-from solvers.decomposition.patches import merge_partition
+from solvers.decomposition.patches import bisect_partition
+from solvers.decomposition.split_multigrid import SplitMultigridSystem
 from solvers.linear import (
     FactorReport,
     LinearSolverOptions,
@@ -62,12 +63,12 @@ def rank_of_vertices(problem: ShellProblem, partition: np.ndarray | None,
                      size: int) -> np.ndarray:
     """(n,) owning rank of each vertex.
 
-    The cluster partition merged down to ``size`` compact groups (:func:`merge_partition`)
-    when given, else contiguous index ranges.
+    Whole sets of the cluster partition grouped into ``size`` parts of nearly equal vertex
+    counts (:func:`.patches.bisect_partition`) when given, else contiguous index ranges.
     """
     n = problem.topology.n_vertices
     if partition is not None and size > 1:
-        return merge_partition(problem.topology, partition, size)
+        return bisect_partition(problem.rest.positions, partition, size)
     return np.minimum((np.arange(n) * size) // n, size - 1).astype(np.int64)
 
 
@@ -161,6 +162,8 @@ class SplitShellEnergy:
         low = replace(problem, params=replace(problem.params, penalty_hessian="low_rank"))
         self.comm, self.layout = comm, layout
         self.topology, self.rest = problem.topology, problem.rest
+        self.target = np.array(problem.target, dtype=np.float64)
+        """The global penalty target y (n, 3), the same on every rank."""
         owned = np.flatnonzero(layout.vertex_rank == comm.rank)
         self.patch = PatchEnergy(low, owned)
         counts = np.bincount(layout.vertex_rank, minlength=comm.size)
@@ -410,45 +413,79 @@ class SplitNewtonSolver:
     """Monolithic Newton split by stencils over ``comm`` (see the module docstring).
 
     Build once per problem; :meth:`minimize` may be called for several frames (new targets
-    through :meth:`set_target`), reusing the symbolic analysis.
+    through :meth:`set_target`), reusing the symbolic analysis. ``options.linear_method``
+    picks the distributed Newton system: "direct", the augmented MUMPS LDL^T above
+    (``options.augmented_linear``), or "multigrid", CG with the distributed geometric
+    multigrid of :mod:`.split_multigrid` (``options.multigrid``; needs ``prolongations``).
+    The Lanczos restart of the shift ladder (``inertia_restart``) needs the whole Hessian on
+    one rank and is not used.
 
     Args:
         problem: The global shell problem (the same on every rank).
         partition: (n,) cluster partition used for the ownership (None: index ranges).
-        options: Newton options; ``options.augmented_linear`` is the MUMPS LDL^T / LU.
+        options: Newton options.
         comm: Communicator (default COMM_WORLD).
+        prolongations: The subdivision hierarchy's ``P_l``, coarse to fine (multigrid).
 
     """
 
     def __init__(self, problem: ShellProblem, partition: np.ndarray | None = None,
-                 options: ShellNewtonOptions | None = None, comm: Any = None) -> None:
+                 options: ShellNewtonOptions | None = None, comm: Any = None,
+                 prolongations: tuple[sp.csr_matrix, ...] | None = None) -> None:
         self.comm = comm if comm is not None else MPI.COMM_WORLD
-        self.options = options or ShellNewtonOptions()
+        options = options or ShellNewtonOptions()
         vertex_rank = rank_of_vertices(problem, partition, self.comm.size)
         g = _factor_g(problem)
         h = sp.csr_matrix(problem.H) if g is not None else None
         self.layout = SplitLayout.build(vertex_rank, h, self.comm.size)
         self.energy = SplitShellEnergy(problem, self.layout, self.comm)
-        self.linear = SplitAugmentedSystem(self.energy, g, self.options.augmented_linear)
-        self.newton = ShellNewtonSolver(self.energy, self.options)  # type: ignore[arg-type]
+        self.newton = ShellNewtonSolver(
+            self.energy,  # type: ignore[arg-type]
+            replace(options, linear_method="direct", inertia_restart=False))
+        self.linear: SplitAugmentedSystem | SplitMultigridSystem
+        if options.linear_method == "multigrid":
+            if prolongations is None:
+                raise InputError("SplitNewtonSolver: linear_method 'multigrid' needs the "
+                                 "subdivision hierarchy (prolongations=)")
+            self.linear = SplitMultigridSystem(
+                self.energy, prolongations, g, self.layout.cluster_rank, options.multigrid,
+                geometry=(problem.rest.positions, problem.topology.faces))
+            self.newton.krylov = self.linear
+        else:
+            self.linear = SplitAugmentedSystem(self.energy, g, options.augmented_linear)
         self.newton.linear = self.linear
+        self._method = options.linear_method
+
+    @property
+    def options(self) -> ShellNewtonOptions:
+        """The Newton options in use (``linear_method`` as given)."""
+        return replace(self.newton.options, linear_method=self._method)
+
+    @options.setter
+    def options(self, value: ShellNewtonOptions) -> None:
+        self._method = value.linear_method
+        self.newton.options = replace(value, linear_method="direct", inertia_restart=False)
 
     def set_target(self, y: np.ndarray) -> None:
         """Set a new penalty target (n, 3) for the next frame (the same on every rank)."""
-        self.energy.patch.energy.set_target(np.asarray(y)[self.energy.patch.local])
+        self.energy.target = np.array(y, dtype=np.float64)
+        self.energy.patch.energy.set_target(self.energy.target[self.energy.patch.local])
 
     def minimize(self, x0: np.ndarray) -> tuple[np.ndarray, ShellSolveReport]:
         """Newton from ``x0`` (n, 3, the same on every rank); x identical on every rank."""
         return self.newton.minimize(np.asarray(x0, dtype=np.float64))
 
     def info(self) -> SplitInfo:
-        """Sizes of this rank's share (after at least one factorisation)."""
+        """Sizes of this rank's share (after at least one factorisation; direct solve)."""
+        linear = self.linear
+        if not isinstance(linear, SplitAugmentedSystem):
+            raise InputError("SplitNewtonSolver.info: only for the direct (augmented) solve")
         return SplitInfo(owned_vertices=self.energy.patch.n_vertices,
                          local_vertices=int(self.energy.patch.local.size),
-                         local_matrix_entries=self.linear.local_nnz,
+                         local_matrix_entries=linear.local_nnz,
                          global_size=int(self.layout.offsets[-1]),
-                         symbolic_analyses=self.linear.analyses,
-                         factor_memory_mb=self.linear.memory_mb)
+                         symbolic_analyses=linear.analyses,
+                         factor_memory_mb=linear.memory_mb)
 
 
 def split_minimize(problem: ShellProblem, x0: np.ndarray, partition: np.ndarray | None = None,

@@ -1,0 +1,507 @@
+r"""Multigrid-preconditioned CG on the split layout: the distributed multigrid Newton system.
+
+The distributed counterpart of :class:`solvers.multigrid.MultigridLinearSystem` for
+:class:`~solvers.decomposition.split_newton.SplitNewtonSolver`: every rank holds the rows of
+its own vertices on every level and PETSc does the products and the messages.
+
+* Ownership per level: the finest level's vertices belong to the ranks of the split layout; a
+  coarser vertex ``j`` of level ``l`` belongs to the owner of the level-``l+1`` vertex with
+  the largest weight in column ``j`` of ``S_l`` (for the linear and Loop schemes, the vertex
+  at the same place), so a prolongation row and most of its columns live on one rank.
+  PETSc numbers each level rank by rank (dof ``3 v + k`` of rank r's ``i``-th vertex is
+  ``offset_r + 3 i + k``).
+* Fine level: ``A + tau I`` as a ``MATMPIAIJ`` from the split energy's owned Hessian rows
+  (pattern set once by ``MatSetPreallocationCOO``). Prolongations ``P_l = S_l (x) I_3``
+  as ``MATMPIAIJ``; Galerkin levels ``A_l = P_l^T A_{l+1} P_l`` by the parallel
+  ``MatPtAP`` (symbolic product reused).
+* Penalty: as in the serial solver, ``G^T G`` (``G = sqrt(2 k_P) H (x) I_3``) is never
+  assembled on the fine levels: level ``l`` applies ``A_l + G_l^T G_l`` matrix-free
+  (``G_l = G_{l+1} P_l``, rows owned by the cluster's owner), Jacobi reads
+  ``diag(A_l) + colsum(G_l .* G_l)``, and the coarsest level ``A_0 + G_0^T G_0`` is
+  assembled and factorised by MUMPS Cholesky on all ranks.
+* CG (unpreconditioned norm) with Chebyshev/Jacobi smoothing (Briggs, Henson & McCormick, A
+  Multigrid Tutorial, ch. 3), the forcing term of :func:`solvers.multigrid.forcing_term`
+  (Eisenstat & Walker 1996, choice 2) and the true relative residual as acceptance test.
+  A CG that fails (negative curvature, an indefinite coarse matrix) returns NaN, and the
+  shell Newton moves to its next shift. The Chebyshev bounds are estimated at every set-up,
+  or with ``eigen_estimate = "solve"`` once per Newton solve (Jacobi diagonals refreshed at
+  every set-up; a failed CG with bounds from an earlier Newton iteration is repeated once
+  with new bounds), as in the serial solver.
+
+* With ``options.phase_space`` the wrinkle-phase coarse space of :mod:`.split_phase` deflates
+  CG (A-DEF2 around the V-cycle, from ``x_0 = Q b``), as in the serial solver; an indefinite
+  ``Z^T A Z`` ends the set-up with a failed report (the Newton moves to its next shift).
+
+The serial solver's SBAIJ level copies, threads and direct fallback have no distributed
+form here; with one rank the product keeps the serial
+solver.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from meshes.errors import InputError
+from models.backend import PETSc
+from solvers.decomposition.split_phase import SplitPhaseSpace
+from solvers.linear import FactorReport, coo_aij
+from solvers.multigrid import (
+    JacobiPC,
+    KrylovStats,
+    MultigridOptions,
+    forcing_term,
+    pcmg_options,
+)
+from solvers.phase_space import DeflatedPreconditioner, hat_matrix
+
+
+def level_owners(fine_owner: np.ndarray, prolongations: tuple[sp.csr_matrix, ...]
+                 ) -> list[np.ndarray]:
+    """Owning rank of every vertex of every level, coarse to fine (the last is ``fine_owner``).
+
+    Coarse vertex ``j`` goes to the owner of the finer vertex with the largest ``|S_ij|``
+    (``S_l`` is read off the dof prolongation ``P_l = S_l (x) I_3`` as its ``[::3, ::3]``).
+    """
+    owners = [np.asarray(fine_owner, dtype=np.int64)]
+    for p in reversed(prolongations):
+        s = sp.csc_matrix(abs(p[::3, ::3]))
+        counts = np.diff(s.indptr)
+        if np.any(counts == 0):
+            raise InputError("level_owners: a coarse vertex has no finer vertex (column of S_l "
+                             "empty)")
+        heaviest = np.maximum.reduceat(s.data, s.indptr[:-1])
+        is_max = s.data == np.repeat(heaviest, counts)
+        first = np.flatnonzero(is_max)[np.searchsorted(np.flatnonzero(is_max), s.indptr[:-1])]
+        owners.append(owners[-1][s.indices[first]])
+    return owners[::-1]
+
+
+@dataclass(frozen=True, eq=False)
+class LevelNumbering:
+    """PETSc numbering of one level's dofs, rank by rank.
+
+    Attributes:
+        owner: (n,) rank of every vertex.
+        dof: (3n,) PETSc index of every dof ``3 v + k``.
+        offsets: (size + 1,) PETSc row ranges of the ranks.
+        owned: (3 n_r,) dofs (``3 v + k``) of this rank in its PETSc row order.
+
+    """
+
+    owner: np.ndarray
+    dof: np.ndarray
+    offsets: np.ndarray
+    owned: np.ndarray
+
+    @classmethod
+    def build(cls, owner: np.ndarray, rank: int, size: int) -> LevelNumbering:
+        """Build the numbering by (owner, index); 3 consecutive dofs per vertex."""
+        counts = np.bincount(owner, minlength=size)
+        offsets = np.concatenate([[0], np.cumsum(3 * counts)]).astype(np.int64)
+        order = np.argsort(owner, kind="stable")
+        vertex = np.empty(owner.size, dtype=np.int64)
+        vertex[order] = 3 * np.arange(owner.size)
+        dof = (vertex[:, None] + np.arange(3)).reshape(-1)
+        mine = np.flatnonzero(owner == rank)
+        return cls(owner, dof, offsets, (3 * mine[:, None] + np.arange(3)).reshape(-1))
+
+    @property
+    def local_size(self) -> int:
+        """Rows of this rank."""
+        return int(self.owned.size)
+
+    @property
+    def size(self) -> int:
+        """Rows of the level."""
+        return int(self.offsets[-1])
+
+
+def _rect_aij(comm: Any, rows: tuple[int, int], cols: tuple[int, int],
+              coo: tuple[np.ndarray, np.ndarray, np.ndarray]) -> Any:
+    """Assembled ``MATMPIAIJ`` of (local, global) ``rows`` x ``cols`` from this rank's COO."""
+    mat: Any = PETSc.Mat().create(comm=comm)
+    mat.setSizes((rows, cols))
+    mat.setType(PETSc.Mat.Type.AIJ)
+    mat.setPreallocationCOO(coo[0].astype(PETSc.IntType), coo[1].astype(PETSc.IntType))
+    mat.setValuesCOO(np.ascontiguousarray(coo[2], dtype=PETSc.ScalarType))
+    return mat
+
+
+def _owned_rows(m: sp.csr_matrix, rows: np.ndarray, row_index: np.ndarray,
+                col_index: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """COO (PETSc rows, PETSc cols, values) of rows ``rows`` of ``m``."""
+    sub = sp.csr_matrix(m[rows])
+    local_rows = np.repeat(np.arange(rows.size), np.diff(sub.indptr))
+    return row_index[rows][local_rows], col_index[sub.indices], sub.data
+
+
+class _LevelOperator:
+    """``MatPython`` context of ``A_l + G_l^T G_l`` (distributed; ``G_l`` None: ``A_l``)."""
+
+    def __init__(self, a: Any, g: Any, g_diagonal: np.ndarray | float) -> None:
+        self.a, self.g, self.g_diagonal = a, g, g_diagonal
+        self.gx = None if g is None else g.createVecs()[1]
+
+    def mult(self, mat: Any, x: Any, y: Any) -> None:  # noqa: ARG002 (petsc4py signature)
+        """``y = A x + G^T (G x)``."""
+        self.a.mult(x, y)
+        if self.g is not None:
+            self.g.mult(x, self.gx)
+            self.g.multTransposeAdd(self.gx, y, y)
+
+    def getDiagonal(self, mat: Any, d: Any) -> None:  # noqa: N802, ARG002 (petsc4py names)
+        """``d = diag(A) + colsum(G .* G)``."""
+        self.a.getDiagonal(d)
+        d.getArray()[:] += self.g_diagonal
+
+
+class SplitMultigridSystem:
+    """CG + PCMG for ``(A + tau I + G^T G) dx = b`` over ``comm`` (module docstring).
+
+    The Newton-system interface of :class:`~solvers.shell_newton.ShellNewtonSolver`
+    (``factorize(ev, tau)``, ``solve(b)``, ``times()``) plus the forcing-term calls it makes
+    on a Krylov solver (``reset_forcing``, ``set_gradient_norm``, ``stats``).
+
+    Args:
+        energy: The split energy (owned Hessian rows, the allgather of owned values).
+        prolongations: ``P_l`` coarse to fine (:meth:`solvers.multigrid.ShellHierarchy.
+            prolongations`), the last ending at the shell's dofs.
+        g: The penalty factor G (3c x 3n; None without penalty), the same on every rank.
+        cluster_rank: (c,) rank owning each penalty row (the split layout's).
+        options: CG / multigrid options (see the module docstring for those that apply).
+        geometry: Rest vertices and faces of the shell (``options.phase_space`` needs them).
+
+    """
+
+    def __init__(self, energy: Any, prolongations: tuple[sp.csr_matrix, ...],
+                 g: sp.csr_matrix | None, cluster_rank: np.ndarray,
+                 options: MultigridOptions,
+                 geometry: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        if not prolongations:
+            raise InputError("SplitMultigridSystem: the hierarchy needs >= 1 subdivision level")
+        self.energy, self.options, self.comm = energy, options, energy.comm
+        rank, size = self.comm.rank, self.comm.size
+        owners = level_owners(energy.layout.vertex_rank, prolongations)
+        self.levels = [LevelNumbering.build(o, rank, size) for o in owners]
+        fine = self.levels[-1]
+        if not np.array_equal(fine.owned, energy.owned_dofs):
+            raise InputError("SplitMultigridSystem: the split energy's owned dofs are not in "
+                             "rank-by-rank vertex order")
+        self.p_mats = [self._prolongation(p, self.levels[i + 1], self.levels[i])
+                       for i, p in enumerate(prolongations)]
+        self.stats = KrylovStats()
+        self.eta = options.rtol
+        self._history: tuple[float, float] = (0.0, options.ew_max)
+        self._coarse_penalty: Any = None
+        self._penalty = self._penalty_levels(g, prolongations, cluster_rank)
+        self._fine: Any = None
+        self._fine_values = np.zeros(0)
+        self._fine_diag = np.zeros(0, dtype=np.int64)
+        self._galerkin: list[Any] = []
+        self._coarse: Any = None
+        self._operators: list[Any] = []
+        self._ksp: Any = None
+        self._vecs: tuple[Any, Any, Any] | None = None
+        self._current: tuple[Any, float] | None = None
+        self.phase = self._phase_space(prolongations, geometry)
+        self._state: tuple[np.ndarray, np.ndarray] | None = None
+        self._fields_stale = True
+        self._phase_ready = False
+        self._deflated: Any = None
+        self._jacobi: list[JacobiPC] = []
+        self._estimate_due = True
+        self._bounds_stale = False
+
+    def _phase_space(self, prolongations: tuple[sp.csr_matrix, ...],
+                     geometry: tuple[np.ndarray, np.ndarray] | None) -> SplitPhaseSpace | None:
+        """Build the distributed wrinkle-phase space when ``options.phase_space`` (else None)."""
+        if not self.options.phase_space:
+            return None
+        if geometry is None:
+            raise InputError("MultigridOptions.phase_space: needs the shell's rest geometry "
+                             "(SplitMultigridSystem(..., geometry=(vertices, faces)))")
+        level = self.options.phase_level
+        hats = hat_matrix(tuple(sp.csr_matrix(p[::3, ::3]) for p in prolongations), level)
+        fine, columns = self.levels[-1], self.levels[level]
+        return SplitPhaseSpace(*geometry, hats,
+                               (fine.dof, fine.owned, (fine.local_size, fine.size)),
+                               (columns.dof, (columns.local_size, columns.size)), self.comm)
+
+    def _prolongation(self, p: sp.csr_matrix, fine: LevelNumbering,
+                      coarse: LevelNumbering) -> Any:
+        """``P_l`` as ``MATMPIAIJ`` (rows of the fine level, columns of the coarse)."""
+        coo = _owned_rows(sp.csr_matrix(p), fine.owned, fine.dof, coarse.dof)
+        return _rect_aij(self.comm, (fine.local_size, fine.size),
+                         (coarse.local_size, coarse.size), coo)
+
+    def _penalty_levels(self, g: sp.csr_matrix | None, prolongations: tuple[sp.csr_matrix, ...],
+                        cluster_rank: np.ndarray) -> list[tuple[Any, np.ndarray] | None]:
+        """Per level (coarse to fine): ``(G_l as MATMPIAIJ, owned colsum(G_l .* G_l))``."""
+        if g is None:
+            return [None] * len(self.levels)
+        chain = [sp.csr_matrix(g)]
+        for p in reversed(prolongations):
+            chain.append(sp.csr_matrix(chain[-1] @ p))
+        chain = chain[::-1]
+        rows = LevelNumbering.build(np.asarray(cluster_rank, dtype=np.int64),
+                                    self.comm.rank, self.comm.size)
+        out: list[tuple[Any, np.ndarray] | None] = []
+        for level, gl in zip(self.levels, chain, strict=True):
+            coo = _owned_rows(gl, rows.owned, rows.dof, level.dof)
+            mat = _rect_aij(self.comm, (rows.local_size, rows.size),
+                            (level.local_size, level.size), coo)
+            colsum = np.asarray(gl.multiply(gl).sum(axis=0)).ravel()
+            out.append((mat, colsum[level.owned]))
+        g0 = chain[0]
+        coarse = self.levels[0]
+        self._coarse_penalty = _rect_aij(
+            self.comm, (coarse.local_size, coarse.size), (coarse.local_size, coarse.size),
+            _owned_rows(sp.csr_matrix(g0.T @ g0), coarse.owned, coarse.dof, coarse.dof))
+        return out
+
+    # ----------------------------------------------------------------------------- set-up
+
+    def _fine_matrix(self, rows: sp.csr_matrix) -> None:
+        """COO pattern of the owned Hessian rows (local columns mapped to PETSc), once."""
+        patch, fine = self.energy.patch, self.levels[-1]
+        row_dofs = fine.dof[(3 * patch.interior[:, None] + np.arange(3)).reshape(-1)]
+        col_dofs = fine.dof[(3 * patch.local[:, None] + np.arange(3)).reshape(-1)]
+        coo_rows = np.repeat(row_dofs, np.diff(rows.indptr))
+        coo_cols = col_dofs[rows.indices]
+        self._fine_diag = np.flatnonzero(coo_rows == coo_cols)
+        if self._fine_diag.size != fine.local_size:
+            raise InputError("SplitMultigridSystem: the Hessian rows must contain the diagonal")
+        self._fine = coo_aij(self.comm, fine.local_size, fine.size, coo_rows, coo_cols)
+        self._fine_values = np.zeros(coo_rows.size, dtype=PETSc.ScalarType)
+
+    def factorize(self, ev: Any, tau: float) -> FactorReport:
+        """Set the preconditioner up for ``ev.hess + tau I (+ G^T G)`` (collective)."""
+        start = time.perf_counter()
+        rows = getattr(ev.hess, "matrix", None)
+        if rows is None:
+            raise InputError("SplitMultigridSystem.factorize: expected the split energy's "
+                             "owned Hessian rows")
+        if self._fine is None:
+            self._fine_matrix(sp.csr_matrix(rows))
+        np.copyto(self._fine_values, rows.data)
+        self._fine_values[self._fine_diag] += tau
+        self._fine.setValuesCOO(self._fine_values)
+        same_matrix = self._current is not None and self._current[0] is ev
+        self._current = (ev, float(tau))
+        phase = self._update_phase(tau, same_matrix)
+        if phase is not None and phase.indefinite:
+            self.stats.indefinite_skips += 1
+            return self._setup_done(start, replace(phase, shift=float(tau)))
+        self._galerkin_products()
+        self._update_coarse()
+        if self._ksp is None:
+            self._ksp = self._create_ksp()
+        for jacobi in self._jacobi:
+            jacobi.refresh()
+        if self._estimate_due:
+            self._estimate()
+            self._estimate_due = self.options.eigen_estimate == "setup"
+        self._ksp.setUp()
+        if self.phase is not None and self._deflated is None:
+            self._deflated = self._deflated_ksp()
+        return self._setup_done(start, FactorReport(success=True, shift=float(tau)))
+
+    def _estimate(self) -> None:
+        """Make the smoothers re-read their operators (Chebyshev bounds) at the next solve."""
+        for op in self._operators:
+            op.stateIncrease()
+        self.stats.eigen_estimates += 1
+        self._bounds_stale = False
+
+    def _setup_done(self, start: float, report: FactorReport) -> FactorReport:
+        """Count a set-up begun at ``start``; the report with its time."""
+        elapsed = time.perf_counter() - start
+        self.stats.setups += 1
+        self.stats.setup_time += elapsed
+        return replace(report, numeric_time=elapsed)
+
+    def _update_phase(self, tau: float, same_matrix: bool) -> FactorReport | None:
+        """Phase space: new test fields, ``A_Z`` and its factorisation (None: off).
+
+        As :meth:`solvers.multigrid.MultigridLinearSystem._update_phase`: a retry of the same
+        evaluation with another shift and unchanged fields only shifts ``A_Z``.
+        """
+        self._phase_ready = False
+        if self.phase is None:
+            return None
+        shift_only = same_matrix and not self._fields_stale
+        if not shift_only:
+            x, y = self._state if self._state is not None else (self.phase.rest,) * 2
+            self.phase.set_fields(x, y)
+            self._fields_stale = False
+        penalty = self._penalty[-1]
+        report = self.phase.update(self._fine, None if penalty is None else penalty[0], tau,
+                                   shift_only=shift_only)
+        self._phase_ready = report.usable_spd
+        return report
+
+    def _deflated_ksp(self) -> Any:
+        """CG (unpreconditioned norm, from ``x_0 = Q b``) preconditioned by A-DEF2 around PCMG."""
+        assert self.phase is not None  # only with the phase space (internal invariant)
+        ksp: Any = PETSc.KSP().create(self.comm)
+        ksp.setType("cg")
+        ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+        ksp.setInitialGuessNonzero(True)
+        ksp.setOperators(self._operators[-1])
+        pc: Any = ksp.getPC()
+        pc.setType(PETSc.PC.Type.PYTHON)
+        pc.setPythonContext(DeflatedPreconditioner(self._operators[-1], self._ksp.getPC(),
+                                                   self.phase))  # type: ignore[arg-type]
+        ksp.setUp()
+        return ksp
+
+    def _galerkin_products(self) -> None:
+        """``A_l = P_l^T A_{l+1} P_l`` from the finest down (symbolic product reused)."""
+        if not self._galerkin:
+            mats = [self._fine]
+            for p in reversed(self.p_mats):
+                mats.append(mats[-1].PtAP(p))
+            self._galerkin = mats[::-1]
+            return
+        for level in range(len(self.p_mats) - 1, -1, -1):
+            self._galerkin[level + 1].PtAP(self.p_mats[level], result=self._galerkin[level])
+
+    def _update_coarse(self) -> None:
+        """``A_0 + G_0^T G_0`` into one matrix of fixed pattern (their union)."""
+        a0 = self._galerkin[0]
+        if self._coarse is None:
+            self._coarse = a0.duplicate(copy=True)
+            if self._coarse_penalty is not None:
+                self._coarse.axpy(1.0, self._coarse_penalty,
+                                  PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+            self._coarse.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+            return
+        self._coarse.zeroEntries()
+        self._coarse.axpy(1.0, a0, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+        if self._coarse_penalty is not None:
+            self._coarse.axpy(1.0, self._coarse_penalty,
+                              PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+
+    def _level_operator(self, level: int) -> Any:
+        """Level ``level`` (>= 1) as a ``MatPython``: ``A_l + G_l^T G_l``."""
+        numbering, penalty = self.levels[level], self._penalty[level]
+        context = _LevelOperator(self._galerkin[level], *(penalty or (None, 0.0)))
+        sizes = (numbering.local_size, numbering.size)
+        mat: Any = PETSc.Mat().createPython((sizes, sizes), context, comm=self.comm)
+        mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        mat.setUp()
+        return mat
+
+    def _create_ksp(self) -> Any:
+        """CG (unpreconditioned norm) + PCMG: Chebyshev/Jacobi levels, MUMPS coarse."""
+        self._operators = [self._level_operator(level) for level in range(1, len(self.levels))]
+        ksp: Any = PETSc.KSP().create(self.comm)
+        prefix = f"wrinkles_split_mg{id(self)}_"
+        ksp.setOptionsPrefix(prefix)
+        ksp.setType("cg")
+        ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+        pc: Any = ksp.getPC()
+        pc.setType("mg")
+        pc.setMGLevels(len(self.levels))
+        pc.setMGType(PETSc.PC.MGType.MULTIPLICATIVE)
+        pc.setMGCycleType(PETSc.PC.MGCycleType.V if self.options.cycle == "v"
+                          else PETSc.PC.MGCycleType.W)
+        for level, p in enumerate(self.p_mats, start=1):
+            pc.setMGInterpolation(level, p)
+        for level, op in enumerate([self._coarse, *self._operators]):
+            pc.getMGSmoother(level).setOperators(op, op)
+        ksp.setOperators(self._operators[-1])
+        python = self.options.eigen_estimate == "solve"
+        values = pcmg_options(self.options.smoother_degree, "python" if python else "jacobi")
+        db = PETSc.Options()
+        for key, value in values.items():
+            db.setValue(prefix + key, value)
+        try:  # the level smoothers read the options database during the first PCSetUp only
+            ksp.setFromOptions()
+            self._jacobi = [JacobiPC(op) for op in self._operators] if python else []
+            for level, jacobi in enumerate(self._jacobi, start=1):
+                level_pc = pc.getMGSmoother(level).getPC()
+                level_pc.setType(PETSc.PC.Type.PYTHON)
+                level_pc.setPythonContext(jacobi)
+            ksp.setUp()
+        finally:
+            for key in values:
+                db.delValue(prefix + key)
+        self._vecs = (*self._operators[-1].createVecs(), self._operators[-1].createVecs()[0])
+        return ksp
+
+    # ----------------------------------------------------------------------------- solve
+
+    def reset_forcing(self) -> None:
+        """Start a new Newton solve: no forcing history, new Chebyshev bounds at the set-up."""
+        self._history = (0.0, self.options.ew_max)
+        self._estimate_due = True
+
+    def set_gradient_norm(self, grad_norm: float, target: float = 0.0) -> None:
+        """Choose this Newton iteration's CG tolerance (:func:`solvers.multigrid.forcing_term`).
+
+        From now on the Chebyshev bounds of earlier iterations count as stale (:meth:`solve`).
+        """
+        self._bounds_stale = True
+        self.eta, self._history = forcing_term(self.options, grad_norm, self._history, target)
+
+    def set_state(self, x: np.ndarray, target: np.ndarray | None) -> None:
+        """Positions and penalty target of the next set-up (the phase space's test fields)."""
+        if self.phase is None:
+            return
+        y = self.phase.rest if target is None else np.asarray(target).reshape(-1, 3)
+        state = (np.array(x, dtype=np.float64).reshape(-1, 3), y)
+        if self._state is None or not all(
+                np.array_equal(a, b) for a, b in zip(state, self._state, strict=True)):
+            self._state, self._fields_stale = state, True
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """``dx`` (3n,) on every rank by CG from 0 to the forcing term; NaN when CG fails.
+
+        With ``eigen_estimate = "solve"`` a failed CG whose Chebyshev bounds come from an
+        earlier Newton iteration is repeated once with new bounds.
+        """
+        start = time.perf_counter()
+        try:
+            x = self._accepted_cg(rhs)
+            if x is None and self._bounds_stale and self.options.eigen_estimate == "solve":
+                self._estimate()
+                x = self._accepted_cg(rhs)
+            return x if x is not None else np.full(3 * self.energy.n_vertices, np.nan)
+        finally:
+            self.stats.solves += 1
+            self.stats.solve_time += time.perf_counter() - start
+
+    def _accepted_cg(self, rhs: np.ndarray) -> np.ndarray | None:
+        """CG from 0 (from ``Q b`` with the phase space); ``dx`` if the true residual passes."""
+        assert self._vecs is not None  # factorize() ran first (internal invariant)
+        b, x, r = self._vecs
+        b.setArray(np.ascontiguousarray(rhs[self.levels[-1].owned], dtype=np.float64))
+        x.set(0.0)
+        ksp = self._deflated if self._phase_ready else self._ksp
+        if self._phase_ready:
+            ksp.getPC().getPythonContext().start(b, x)
+        ksp.setTolerances(rtol=self.eta, atol=0.0, max_it=self.options.max_iterations)
+        ksp.solve(b, x)
+        self.stats.iterations.append(int(ksp.getIterationNumber()))
+        if ksp.getConvergedReason() <= 0:
+            return None
+        self._operators[-1].mult(x, r)
+        r.aypx(-1.0, b)
+        residual = r.norm() / (b.norm() or 1.0)
+        if residual > self.options.residual_slack * self.eta:
+            return None
+        self.stats.true_residuals.append(float(residual))
+        return self.energy.allgather_owned(x.getArray(readonly=True))
+
+    def times(self) -> tuple[float, float, float]:
+        """Return (set-up, analysis, CG solve) seconds."""
+        return self.stats.setup_time, 0.0, self.stats.solve_time
+
+
+__all__ = ["LevelNumbering", "SplitMultigridSystem", "level_owners"]

@@ -3,8 +3,10 @@
 For each scene the command ``wrinkles run SCENE --out TMP --overwrite --set output.render=false
 [--frames N] [--set ...]`` is run in a subprocess, once with this tree and, with ``--before
 REV``, once with a detached git worktree of ``REV`` (its packages first on ``PYTHONPATH``, the
-same interpreter and venv), alternating per scene so both see the same machine load. From each
-run's ``summary.json`` the table reports per scene and code:
+same interpreter and venv), alternating per scene so both see the same machine load; a worktree
+first runs one frame of the first scene, outside the table, so that its numba kernels are
+compiled before it is timed. From each run's ``summary.json`` the table reports per scene and
+code:
 
 * frames, shell Newton iterations, factorisations (numeric, shifted retries included) and the
   failed ones (attempts beyond one per iteration that factorised), shell set-up method and
@@ -180,6 +182,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                            "overrides": args.overrides, "ranks": args.ranks, "rows": []}
     print(HEADER)
     try:
+        for label, code in codes[1:]:  # numba compiles into the worktree's cache once
+            warm = run_cli(code, scene_path(args.scenes[0]), tmp / "out", 1, args.overrides,
+                           args.timeout)
+            print(f"{'(warm-up)':>18} {label:>8}  one frame of {args.scenes[0]}: exit "
+                  f"{warm['exit']}, {warm['process_wall']:.1f} s", flush=True)
         for scene in args.scenes:
             first: dict[str, float] = {}  # frames' wall time at the first rank count, per code
             for ranks in args.ranks:

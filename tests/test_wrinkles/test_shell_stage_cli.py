@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 from support import DEFAULT_SCENE, REPO, progress_lines, read_shell_series, wrinkles
@@ -176,3 +177,31 @@ def test_two_ranks_split_the_multigrid_shell_and_keep_its_frames(mpiexec, tmp_pa
     print("iterations", [f["details"]["shell_iterations"] for r in runs for f in r["frames"]],
           "max shell displacement difference 1 vs 2 ranks", diff)
     assert diff < 1e-7
+
+
+@pytest.mark.mpi
+def test_a_two_rank_run_resumed_on_one_rank_continues_the_serial_frames(mpiexec, tmp_path):
+    """The checkpoint's shell state does not depend on the rank count: 2 frames on 2 ranks
+    (the split shell), then ``--resume --frames 3`` on one rank, ends where 3 serial frames
+    end, to the solver tolerance (the body's XDMF series keeps its first run's node order, so
+    a resume on another rank count writes none: ``output.xdmf = false``)."""
+    out, no_xdmf = tmp_path / "np2", ["--set", "output.xdmf=false"]
+    proc = mpiexec(["-m", "wrinkles", "run", str(DEFAULT), "--out", str(out), *COARSE,
+                    *no_xdmf], timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    extended = ["--frames", "3", *COARSE[2:], *no_xdmf]
+    resumed = wrinkles("run", str(DEFAULT), "--out", str(out), "--resume", *extended)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    straight = wrinkles("run", str(DEFAULT), "--out", str(tmp_path / "np1"), *extended)
+    assert straight.returncode == 0, straight.stderr[-2000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert [f["frame"] for f in summary["frames"]] == [1, 2, 3]
+    assert [r["ranks"] for r in summary["run"]["restarts"]] == [1]
+    positions = []
+    for run in (out, tmp_path / "np1"):
+        with h5py.File(run / "checkpoint.h5", "r") as h5:
+            assert h5.attrs["frame"] == 3
+            positions.append(h5["stages/shell/positions"][...])
+    diff = np.abs(positions[0] - positions[1]).max()
+    print("max shell position difference, resumed on 1 rank vs serial", diff)
+    assert diff < 1e-6

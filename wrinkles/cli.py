@@ -110,6 +110,8 @@ def command_run(args: argparse.Namespace) -> int:
         with frame_progress(run.n_frames - len(run.records), comm.size) as log:
             run_frames(run, log=log)
     except SolverError as exc:
+        if comm.size > 1 and not ranks_agree():  # the others wait in a solver's collective
+            abort_alone(exc)
         raise SolverError(record_failure(run, exc)) from None
     return 0
 
@@ -229,22 +231,41 @@ def fail_collectively(exc: BaseException) -> int:
     from models.backend import MPI
 
     comm = MPI.COMM_WORLD
-    code = exc.exit_code if isinstance(exc, WrinklesError) else 2
     if comm.size == 1:
         return report(exc)
+    if not ranks_agree():
+        abort_alone(exc)
+    if comm.rank == 0:
+        report(exc)
+    return exc.exit_code if isinstance(exc, WrinklesError) else 2
+
+
+def ranks_agree() -> bool:
+    """Whether every rank reaches this call within ``AGREE_SECONDS`` (a failing rank asks).
+
+    A non-blocking barrier on :func:`agreement_comm`: ranks that failed together all call
+    it; a rank that failed alone finds the others stuck in a solver's collective.
+    """
     request = agreement_comm().Ibarrier()
     deadline = time.monotonic() + AGREE_SECONDS
     while not request.Test():
         if time.monotonic() > deadline:
-            print(f"[rank {comm.rank}] ", end="", file=sys.stderr)
-            report(exc)
-            sys.stderr.flush()
-            time.sleep(ABORT_GRACE_SECONDS)  # let mpiexec forward the line before the kill
-            comm.Abort(code)
+            return False
         time.sleep(0.01)
-    if comm.rank == 0:
-        report(exc)
-    return code
+    return True
+
+
+def abort_alone(exc: BaseException) -> NoReturn:
+    """Report ``exc`` prefixed with this rank and ``MPI_Abort`` the job with its exit code."""
+    from models.backend import MPI
+
+    comm = MPI.COMM_WORLD
+    print(f"[rank {comm.rank}] ", end="", file=sys.stderr)
+    code = report(exc)
+    sys.stderr.flush()
+    time.sleep(ABORT_GRACE_SECONDS)  # let mpiexec forward the line before the kill
+    comm.Abort(code)
+    raise SystemExit(code)  # not reached: Abort ends the process
 
 
 @functools.cache

@@ -68,3 +68,38 @@ def test_error_on_one_rank_aborts_instead_of_hanging(mpiexec):
     assert proc.returncode == 1
     assert "[rank 1] error: bad input seen by rank 1\n" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+SPLIT_SHELL_FAILS = """
+import sys
+import wrinkles.cli as cli
+from meshes.errors import SolverError
+from models.backend import MPI
+from solvers.decomposition.split_newton import SplitShellEnergy
+
+cli.AGREE_SECONDS = 2.0
+evaluate, calls = SplitShellEnergy.evaluate, [0]
+
+def failing(self, x, order=2, hessian=None):
+    calls[0] += 1
+    if MPI.COMM_WORLD.rank == 1 and calls[0] == 3:
+        raise SolverError("forced failure in the shell stencils of rank 1")
+    return evaluate(self, x, order, hessian)
+
+SplitShellEnergy.evaluate = failing
+sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.mpi
+def test_a_split_shell_failing_on_one_rank_ends_every_rank_with_exit_2(mpiexec, tmp_path):
+    """``mpiexec -n 2 wrinkles run`` with the shell split over the ranks: rank 1 alone fails
+    inside a shell Newton iteration (rank 0 then waits in the next reduction); the job ends
+    with exit 2 and rank 1's one-line message, no hang, no traceback."""
+    scene = cli.Path(__file__).resolve().parents[2] / "scenes" / "default.toml"
+    proc = mpiexec(["-c", SPLIT_SHELL_FAILS, "run", str(scene), "--frames", "1",
+                    "--out", str(tmp_path / "out"), "--set", "output.render=false"],
+                   n=2, timeout=180)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "[rank 1] error: forced failure in the shell stencils of rank 1" in proc.stderr
+    assert "Traceback" not in proc.stderr

@@ -13,7 +13,7 @@
    paper sizes into ``DIR/bench/`` (``--large``: at their own full sizes; quick mode or
    ``--no-benchmarks``: none);
 2. reads the optional sources (``DIR/data/wavelength.json``, ``DIR/data/artefacts.json``,
-   ``DIR/bench/{speed_accuracy,decomposition*,shell_kernels,shell_solve,scaling*,
+   ``DIR/bench/{speed_accuracy,decomposition*,split_scaling,shell_kernels,shell_solve,scaling*,
    iterative_*conv*}.json``): each gives a Markdown table in ``DIR/tables/`` and a section of the
    paper, or the words "not run" and the step that produces it (``--strict``: an error);
 3. fills ``paper/paper.md.in``: ``{{source.key.path:format}}`` is a number read from the JSON
@@ -218,6 +218,35 @@ def speed_accuracy_section(source: Source, files: Sequence[Path]) -> str:
     return "\n".join(speed_accuracy_part(json.loads(f.read_text()), f) for f in files)
 
 
+def split_scaling_section(source: Source, files: Sequence[Path]) -> str:
+    """Render the split shell's scaling: the measured runs, the check, the model's table."""
+    parts = []
+    for path in files:
+        doc = json.loads(path.read_text())
+        measured = [{"ranks": r["ranks"], "vertices": r["vertices"],
+                     "newton": r["newton_iterations"],
+                     "shell_s": max(x["shell_time"] for x in r["per_rank"]),
+                     "owned_max": max(x["owned"] for x in r["per_rank"]),
+                     "halo_max": max(x["halo"] for x in r["per_rank"]),
+                     "products": r["per_rank"][0]["products"],
+                     "cg_iterations": r["per_rank"][0]["cg_iterations"]}
+                    for r in doc["runs"]]
+        parts.append(f"Table: The split shell measured, one frame (`{path.name}`).\n\n"
+                     + markdown_table(measured, tuple(measured[0])))
+        parts += [f"Check at {c['ranks']} ranks: measured {fmt(c['measured'])} s, the network "
+                  f"model with this machine's shared memory {fmt(c['model_shared_memory'])} s; "
+                  f"the difference, {fmt(1e6 * c['overhead_per_product'])} us per distributed "
+                  "product, is the implementation's own overhead (\"as built\").\n"
+                  for c in doc["check"]]
+        parts.append(f"Table: Modelled frame time [s] on a cluster (alpha {fmt(doc['alpha'])} s, "
+                     f"beta {fmt(doc['beta'])} B/s, compute ~ n^"
+                     f"{fmt(doc.get('compute_exponent', 1.0))}; `{path.name}`).\n\n"
+                     + markdown_table(doc["predictions"], (
+                         "vertices", "ranks", "total", "as_built", "compute", "halo",
+                         "reductions", "allgathers")))
+    return "\n".join(parts)
+
+
 SOURCES: tuple[Source, ...] = (
     Source("wavelength", "Wrinkle wavelength against theory and a volumetric bilayer",
            "{build}/data/wavelength.json", "python paper/scripts/wavelength.py",
@@ -236,6 +265,9 @@ SOURCES: tuple[Source, ...] = (
            ("method", "ranks", "patches", "outer", "converged", "stopped_by", "grad_reduction",
             "energy_gap", "max_diff", "time", "speedup", "extrapolated_outer",
             "extrapolated_time"), render=decomposition_section),
+    Source("split_scaling", "The split shell over MPI ranks: measured and modelled",
+           "{build}/" + BENCH_DIR + "/split_scaling.json", "make paper (step split_scaling)",
+           render=split_scaling_section),
     Source("shell_kernels", "Shell energy kernels",
            "{build}/" + BENCH_DIR + "/shell_kernels.json", "make paper (step shell_kernels)",
            ("kind", "size", "reorder", "n_vertices", "terms_us_per_vertex.membrane_edge.order2",
@@ -305,6 +337,8 @@ def benchmark_steps(large: bool) -> list[Step]:
                            "--methods", "direct", "multigrid-phase-ew"),
              f"iterative_{size}_conv.json"),
         step("decomposition", quick, "decomposition_*.json", launcher=("{mpiexec}", "-n", "2")),
+        step("split_scaling", ("--levels", "4" if large else "3", "--ranks", "1", "2"),
+             "split_scaling.json"),
         step("speed_accuracy", ("--resume", *(() if large else SPEED_ACCURACY_PAPER)),
              "speed_accuracy.json", resumable=True),
     ]

@@ -58,7 +58,8 @@ COMPUTE_EXPONENT = 1.12
 def worker(levels: int, out: Path) -> None:
     """One frame through prepare/run_frames on COMM_WORLD; rank 0 writes the JSON record."""
     from models.backend import MPI
-    from solvers.decomposition import split_multigrid, split_newton
+    from solvers import multigrid
+    from solvers.decomposition import split_newton
     from wrinkles.runner import prepare, run_frames
     from wrinkles.scene import load_scene
 
@@ -73,7 +74,7 @@ def worker(levels: int, out: Path) -> None:
 
         setattr(cls, name, wrapper)
 
-    counted(split_multigrid._LevelOperator, "mult", "products")  # noqa: SLF001
+    counted(multigrid.LowRankOperator, "mult", "products")
     counted(split_newton.SplitShellEnergy, "evaluate", "evaluations")
     counted(split_newton.SplitShellEnergy, "value", "values")
     comm = MPI.COMM_WORLD

@@ -51,10 +51,12 @@ from models.embedding.subdivision import Subdivision, SubdivisionOptions, subdiv
 from models.shell.schedule import balanced_cuts, check_threads
 from solvers.linear import FactorReport
 from solvers.phase_space import (
-    DeflatedPreconditioner,
     PhaseSpace,
+    deflated_cg,
+    field_state,
     hat_matrix,
     petsc_aij,
+    same_state,
     scipy_csr,
 )
 
@@ -252,7 +254,7 @@ def forcing_term(options: MultigridOptions, grad_norm: float, history: tuple[flo
     return eta, history
 
 
-class _LowRankOperator:
+class LowRankOperator:
     """``MatPython`` context of ``A + G^T G`` (A a PETSc matrix, G the penalty factor).
 
     ``y = A x + G^T (G x)``: ``MatMult`` with A, then the penalty. When ``G = H (x) I_3``
@@ -267,7 +269,19 @@ class _LowRankOperator:
         self.vertex = None if g is None else _VertexPenalty.of(g, threads)
         self.g = None if g is None or self.vertex is not None else petsc_aij(g)
         self.gx = None if self.g is None else self.g.createVecs()[1]
-        self.g_diagonal = 0.0 if g is None else np.asarray(g.multiply(g).sum(axis=0)).ravel()
+        self.g_diagonal: np.ndarray | float = (
+            0.0 if g is None else np.asarray(g.multiply(g).sum(axis=0)).ravel())
+
+    @classmethod
+    def of_petsc(cls, a: Any, g: Any, g_diagonal: np.ndarray | float) -> LowRankOperator:
+        """Build ``A + G^T G`` from a PETSc G (distributed) and its owned column sums of squares.
+
+        ``g`` None: ``A`` alone. The distributed multigrid's level operators.
+        """
+        op = cls(a, None)
+        op.g, op.g_diagonal = g, g_diagonal
+        op.gx = None if g is None else g.createVecs()[1]
+        return op
 
     def mult(self, mat: Any, x: Any, y: Any) -> None:  # noqa: ARG002 (petsc4py signature)
         """``y = A x + G^T (G x)`` (``A x`` without a penalty)."""
@@ -540,7 +554,7 @@ def _sum_rows(lo: int, hi: int, buffers: np.ndarray, y: np.ndarray) -> None:  # 
         y[i] = total
 
 
-def _python_operator(product: _LowRankOperator) -> Any:
+def _python_operator(product: LowRankOperator) -> Any:
     """Wrap ``A + G^T G`` (or ``A`` alone when g is None) as a matrix-free ``MatPython``."""
     n = product.a.getSize()[0]
     mat: Any = PETSc.Mat().createPython((n, n), product, comm=PETSc.COMM_SELF)
@@ -689,7 +703,7 @@ class MultigridLinearSystem:
         self._ksp: Any = None
         self._current: tuple[Any, float] | None = None
         self._jacobi: list[JacobiPC] = []
-        self._products: list[_LowRankOperator] = []
+        self._products: list[LowRankOperator] = []
         self._sbaij: list[_SymmetricCopy] = []
         self._estimate_due = True
         self._bounds_stale = False
@@ -710,16 +724,11 @@ class MultigridLinearSystem:
         return PhaseSpace(*geometry, hat_matrix(vertex_matrices, self.options.phase_level))
 
     def set_state(self, x: np.ndarray, target: np.ndarray | None) -> None:
-        """Positions and penalty target of the next set-up (the phase space's test fields).
-
-        ``target`` None: the rest positions (the test fields are then the displacement's).
-        """
+        """Positions and penalty target of the next set-up (the phase space's test fields)."""
         if self.phase is None:
             return
-        y = self.phase.rest if target is None else np.asarray(target).reshape(-1, 3)
-        state = (np.array(x, dtype=np.float64).reshape(-1, 3), y)
-        if self._state is None or not all(
-                np.array_equal(a, b) for a, b in zip(state, self._state, strict=True)):
+        state = field_state(self.phase.rest, x, target)
+        if not same_state(state, self._state):
             self._state, self._fields_stale = state, True
 
     # ----------------------------------------------------------------------------- set-up
@@ -789,19 +798,9 @@ class MultigridLinearSystem:
         return report
 
     def _deflated_ksp(self) -> Any:
-        """CG (unpreconditioned norm, from ``x_0 = Q b``) preconditioned by A-DEF2 around PCMG."""
+        """CG from ``x_0 = Q b`` preconditioned by A-DEF2 around PCMG (phase space only)."""
         assert self.phase is not None  # only with the phase space (internal invariant)
-        ksp: Any = PETSc.KSP().create(PETSc.COMM_SELF)
-        ksp.setType("cg")
-        ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
-        ksp.setInitialGuessNonzero(True)
-        ksp.setOperators(self._operators[-1])
-        pc: Any = ksp.getPC()
-        pc.setType(PETSc.PC.Type.PYTHON)
-        pc.setPythonContext(DeflatedPreconditioner(self._operators[-1], self._ksp.getPC(),
-                                                   self.phase))
-        ksp.setUp()
-        return ksp
+        return deflated_cg(PETSc.COMM_SELF, self._operators[-1], self._ksp.getPC(), self.phase)
 
     def _set_penalty(self, g: sp.csr_matrix | None) -> None:
         """Build the constant chain ``G_l = G_{l+1} P_l`` (again only if G changes)."""
@@ -821,15 +820,7 @@ class MultigridLinearSystem:
     def _galerkin_products(self) -> None:
         """``A_l = P_l^T A_{l+1} P_l`` from the finest down (symbolic product reused)."""
         assert self._fine is not None  # set by factorize (internal invariant)
-        fine = self._fine.mat
-        if not self._galerkin:
-            mats = [fine]
-            for p in reversed(self.p_mats):
-                mats.append(mats[-1].PtAP(p))
-            self._galerkin = mats[::-1]
-            return
-        for level in range(len(self.p_mats) - 1, -1, -1):
-            self._galerkin[level + 1].PtAP(self.p_mats[level], result=self._galerkin[level])
+        self._galerkin = galerkin_levels(self._fine.mat, self.p_mats, self._galerkin)
 
     def _update_coarse(self) -> None:
         """Assemble ``A_0 + G_0^T G_0`` (the constant penalty part kept) into the coarse matrix."""
@@ -891,7 +882,7 @@ class MultigridLinearSystem:
         when new eigenvalue bounds are due (``eigen_estimate``) and whose product matrix is
         swapped for the SBAIJ copy (``level_format``).
         """
-        self._products = [_LowRankOperator(a, g, self.options.threads)
+        self._products = [LowRankOperator(a, g, self.options.threads)
                           for a, g in zip(self._galerkin[1:], self._g_levels[1:], strict=True)]
         return [self._coarse, *(_python_operator(p) for p in self._products)]
 
@@ -904,49 +895,11 @@ class MultigridLinearSystem:
     def _create_ksp(self) -> Any:
         """CG (unpreconditioned norm) + PCMG: Chebyshev/Jacobi levels, MUMPS coarse."""
         self._operators = self._level_operators()
-        ksp: Any = PETSc.KSP().create(PETSc.COMM_SELF)
-        prefix = f"wrinkles_mg{id(self)}_"
-        ksp.setOptionsPrefix(prefix)
-        ksp.setType("cg")
-        ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
-        pc: Any = ksp.getPC()
-        pc.setType("mg")
-        pc.setMGLevels(len(self._operators))
-        pc.setMGType(PETSc.PC.MGType.MULTIPLICATIVE)
-        pc.setMGCycleType(PETSc.PC.MGCycleType.V if self.options.cycle == "v"
-                          else PETSc.PC.MGCycleType.W)
-        for level, p in enumerate(self.p_mats, start=1):
-            pc.setMGInterpolation(level, p)
-        for level, op in enumerate(self._operators):
-            pc.getMGSmoother(level).setOperators(op, self._smoother_matrix(level, op))
-        ksp.setOperators(self._operators[-1])
-        # the level smoothers read the options database during the first PCSetUp only
-        smoother_pc = "python" if self.options.eigen_estimate == "solve" \
-            else self.options.smoother_pc
-        values = pcmg_options(self.options.smoother_degree, smoother_pc)
-        db = PETSc.Options()
-        for key, value in values.items():
-            db.setValue(prefix + key, value)
-        try:
-            ksp.setFromOptions()
-            self._python_jacobi(pc)
-            ksp.setUp()
-        finally:
-            for key in values:
-                db.delValue(prefix + key)
+        smoothers = [self._smoother_matrix(level, op) for level, op in enumerate(self._operators)]
+        ksp, self._jacobi = multigrid_cg(PETSc.COMM_SELF, self._operators, smoothers,
+                                         self.p_mats, self.options, f"wrinkles_mg{id(self)}_")
+        self._estimate_due = self._estimate_due or bool(self._jacobi)
         return ksp
-
-    def _python_jacobi(self, pc: Any) -> None:
-        """``eigen_estimate = "solve"``: the fine levels' Jacobi as :class:`JacobiPC` PCs."""
-        if self.options.eigen_estimate != "solve":
-            self._jacobi = []
-            return
-        self._jacobi = [JacobiPC(op) for op in self._operators[1:]]
-        for level, jacobi in enumerate(self._jacobi, start=1):
-            level_pc = pc.getMGSmoother(level).getPC()
-            level_pc.setType(PETSc.PC.Type.PYTHON)
-            level_pc.setPythonContext(jacobi)
-        self._estimate_due = True
 
     # ----------------------------------------------------------------------------- solve
 
@@ -1048,6 +1001,74 @@ class MultigridLinearSystem:
         direct = self.fallback.times() if self.fallback is not None else (0.0, 0.0, 0.0)
         return (self.stats.setup_time + direct[0], direct[1],
                 self.stats.solve_time - self.stats.fallback_time + direct[2])
+
+
+def galerkin_levels(fine: Any, prolongations: list[Any], levels: list[Any]) -> list[Any]:
+    """``A_l = P_l^T A_{l+1} P_l`` from ``fine`` down, coarse to fine (serial or distributed).
+
+    ``levels`` from an earlier call (same patterns) are refilled in place, the symbolic
+    products reused; ``[]`` creates them.
+    """
+    if not levels:
+        mats = [fine]
+        for p in reversed(prolongations):
+            mats.append(mats[-1].PtAP(p))
+        return mats[::-1]
+    for level in range(len(prolongations) - 1, -1, -1):
+        levels[level + 1].PtAP(prolongations[level], result=levels[level])
+    return levels
+
+
+def multigrid_cg(comm: Any, operators: list[Any], smoothers: list[Any], interpolations: list[Any],
+                 options: MultigridOptions, prefix: str) -> tuple[Any, list[JacobiPC]]:
+    """CG (unpreconditioned norm) preconditioned by PCMG, set up; serial or distributed.
+
+    Args:
+        comm: Communicator of the matrices.
+        operators: Level operators, coarse (assembled, MUMPS Cholesky) to fine (the CG's).
+        smoothers: The matrix each level's smoother PC reads (the operator, or an assembled
+            ``A_l`` for SOR).
+        interpolations: ``P_l`` from level l - 1 to level l, coarse to fine.
+        options: Cycle, Chebyshev degree, smoother PC, eigenvalue-estimate policy.
+        prefix: Options prefix of this solver (the level options are set below it).
+
+    Returns:
+        The KSP and, with ``eigen_estimate = "solve"``, the fine levels' Jacobi contexts
+        (:class:`JacobiPC`, refreshed by the caller at every set-up), else ``[]``.
+
+    """
+    ksp: Any = PETSc.KSP().create(comm)
+    ksp.setOptionsPrefix(prefix)
+    ksp.setType("cg")
+    ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+    pc: Any = ksp.getPC()
+    pc.setType("mg")
+    pc.setMGLevels(len(operators))
+    pc.setMGType(PETSc.PC.MGType.MULTIPLICATIVE)
+    pc.setMGCycleType(PETSc.PC.MGCycleType.V if options.cycle == "v"
+                      else PETSc.PC.MGCycleType.W)
+    for level, p in enumerate(interpolations, start=1):
+        pc.setMGInterpolation(level, p)
+    for level, (op, smoother) in enumerate(zip(operators, smoothers, strict=True)):
+        pc.getMGSmoother(level).setOperators(op, smoother)
+    ksp.setOperators(operators[-1])
+    python = options.eigen_estimate == "solve"
+    values = pcmg_options(options.smoother_degree, "python" if python else options.smoother_pc)
+    db = PETSc.Options()
+    for key, value in values.items():
+        db.setValue(prefix + key, value)
+    try:  # the level smoothers read the options database during the first PCSetUp only
+        ksp.setFromOptions()
+        jacobi = [JacobiPC(op) for op in operators[1:]] if python else []
+        for level, context in enumerate(jacobi, start=1):
+            level_pc = pc.getMGSmoother(level).getPC()
+            level_pc.setType(PETSc.PC.Type.PYTHON)
+            level_pc.setPythonContext(context)
+        ksp.setUp()
+    finally:
+        for key in values:
+            db.delValue(prefix + key)
+    return ksp, jacobi
 
 
 def pcmg_options(degree: int, smoother_pc: str) -> dict[str, str]:

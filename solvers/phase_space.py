@@ -119,8 +119,13 @@ def hat_matrix(subdivisions: tuple[sp.spmatrix, ...], level: int) -> sp.csr_matr
     return hats
 
 
-class PhaseSpace:
-    """The coarse space Z, its Galerkin matrix and the correction ``Q r = Z A_Z^{-1} Z^T r``.
+class CoarseSpace:
+    """Z's entries and fields and the factorised ``A_Z = Z^T (A + tau I + G^T G) Z``.
+
+    Shared by the serial :class:`PhaseSpace` and the distributed
+    :class:`solvers.decomposition.split_phase.SplitPhaseSpace`; a subclass builds ``self.z``
+    (PETSc AIJ, serial or distributed) from the entries, sets its values in ``set_fields``
+    and says how a product becomes a scipy matrix (:meth:`_csr`).
 
     Args:
         vertices: Rest positions of the shell ``(n, 3)``.
@@ -132,57 +137,51 @@ class PhaseSpace:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, hats: sp.csr_matrix) -> None:
         self.gradients = surface_gradients(vertices, faces)
         self.rest = np.asarray(vertices, dtype=np.float64)
-        frames = hat_frames(vertices, faces, hats)                     # (n_c, 2, 3)
+        self.frames = hat_frames(vertices, faces, hats)                # (n_c, 2, 3)
         coo = hats.tocoo()
         # entry e of Z: dof 3 v + c, column TEST_FIELDS j + m, value hat(v, j) t_m[v, c]
-        v, j = np.repeat(coo.row, 3 * TEST_FIELDS), np.repeat(coo.col, 3 * TEST_FIELDS)
-        c = np.tile(np.repeat(np.arange(3), TEST_FIELDS), coo.nnz)
-        m = np.tile(np.arange(TEST_FIELDS), 3 * coo.nnz)
-        rows, cols = 3 * v + c, TEST_FIELDS * j + m
-        order = np.lexsort((cols, rows))
-        self.vertex, self.component, self.field = v[order], c[order], m[order]
-        self.hat_value, self.column = np.repeat(coo.data, 3 * TEST_FIELDS)[order], cols[order]
-        self.hat, self.frames = j[order], frames
+        self.vertex = np.repeat(coo.row, 3 * TEST_FIELDS)
+        self.hat = np.repeat(coo.col, 3 * TEST_FIELDS)
+        self.component = np.tile(np.repeat(np.arange(3), TEST_FIELDS), coo.nnz)
+        self.field = np.tile(np.arange(TEST_FIELDS), 3 * coo.nnz)
+        self.hat_value = np.repeat(coo.data, 3 * TEST_FIELDS)
+        self.column = TEST_FIELDS * self.hat + self.field
         self.n_columns = TEST_FIELDS * hats.shape[1]
-        indptr = np.searchsorted(rows[order], np.arange(3 * hats.shape[0] + 1))
-        self.values = np.zeros(rows.size, dtype=PETSc.ScalarType)
-        # PETSc wraps these arrays (no copy): they live as long as the matrix
-        self.csr = (indptr.astype(PETSc.IntType), self.column.astype(PETSc.IntType), self.values)
-        z: Any = PETSc.Mat()
-        z.createAIJWithArrays((3 * hats.shape[0], self.n_columns), self.csr,
-                              comm=PETSc.COMM_SELF)
-        z.assemble()
-        self.z = z
-        self._galerkin: Any = None
-        self._az: Any = None
+        self.values = np.zeros(self.vertex.size, dtype=PETSc.ScalarType)
+        self.z: Any = None
         self._base: tuple[sp.csr_matrix, float] | None = None
-        self._gram: tuple[Any, sp.csr_matrix | None] = (None, None)
-        self._penalty: tuple[Any, Any] | None = None
-        self._g: Any = None
-        self._g_source: sp.csr_matrix | None = None
         self._solver: SparseDirectSolver | None = None
-        self._coarse_rhs = z.createVecs()[0]
-        self._solution = self._coarse_rhs.duplicate()
+        self._az: Any = None
+        self._galerkin: Any = None
+        self._gram: tuple[Any, sp.csr_matrix | None] = (None, None)
+        self._penalty: tuple[Any, Any, Any] | None = None  # (G, G Z, (G Z)^T (G Z))
 
-    def set_fields(self, x: np.ndarray, target: np.ndarray) -> None:
-        """Z's values from the positions x and the penalty target y (both ``(n, 3)``)."""
+    def _reorder(self, order: np.ndarray) -> None:
+        """Permute the entries (e.g. into Z's CSR order)."""
+        for name in ("vertex", "hat", "component", "field", "hat_value", "column"):
+            setattr(self, name, getattr(self, name)[order])
+
+    def _field_values(self, x: np.ndarray, target: np.ndarray) -> None:
+        """Every entry's value from x and the target y (``(n, 3)``), columns normalised.
+
+        A new Z: the last full update and ``Z^T Z`` are out of date.
+        """
         d = np.asarray(x, dtype=np.float64).reshape(-1, 3) - target
         grads = np.stack([g @ d for g in self.gradients], axis=-1)      # (n, 3 comp, 3 dir)
         z_values(self.values, self.hat_value, self.vertex, self.component, self.field,
-                  self.hat, self.frames, d, grads)
+                 self.hat, self.frames, d, grads)
         norms = np.bincount(self.column, self.values ** 2, self.n_columns)
         scale = np.where(norms > 0, 1.0 / np.sqrt(np.where(norms > 0, norms, 1.0)), 0.0)
         self.values *= scale[self.column]
-        self.z.stateIncrease()
         self._base, self._gram = None, (self._gram[0], None)
 
-    def update(self, fine: Any, g: sp.csr_matrix | None, tau: float = 0.0,
+    def update(self, fine: Any, g: Any, tau: float = 0.0,
                shift_only: bool = False) -> FactorReport:
         """Factorise ``Z^T (A + tau I + G^T G) Z`` of the fine AIJ ``A + tau I``.
 
         Args:
             fine: The fine Newton matrix, shift included (PETSc AIJ).
-            g: The penalty factor G (scipy; copied to PETSc once per new object).
+            g: The penalty factor G (scipy, or the distributed PETSc factor).
             tau: The shift in ``fine``.
             shift_only: ``fine`` differs from the one of the last full update (same fields)
                 by its shift alone: ``Z^T A Z + (tau - tau_last) Z^T Z`` is factorised
@@ -208,6 +207,10 @@ class PhaseSpace:
             self._solver = SparseDirectSolver(total, LinearSolverOptions(symmetric="ldlt"))
         return self._solver.factorize(total)
 
+    def _csr(self, mat: Any) -> sp.csr_matrix:
+        """Copy a product of Z into one scipy matrix (the distributed space gathers it)."""
+        return scipy_csr(mat)
+
     def _galerkin_matrix(self, fine: Any) -> sp.csr_matrix:
         """``Z^T (A Z)``: two products, symbolic parts reused (cheaper than ``MatPtAP``)."""
         if self._az is None:
@@ -216,7 +219,7 @@ class PhaseSpace:
         else:
             fine.matMult(self.z, result=self._az)
             self.z.transposeMatMult(self._az, result=self._galerkin)
-        return scipy_csr(self._galerkin)
+        return self._csr(self._galerkin)
 
     def _gram_matrix(self) -> sp.csr_matrix:
         """``Z^T Z`` of the current fields (computed at the first shift-only update)."""
@@ -224,21 +227,59 @@ class PhaseSpace:
         if csr is None:
             mat = self.z.transposeMatMult(self.z) if mat is None else \
                 self.z.transposeMatMult(self.z, result=mat)
-            csr = scipy_csr(mat)
+            csr = self._csr(mat)
             self._gram = (mat, csr)
         return csr
 
-    def _penalty_part(self, g: sp.csr_matrix) -> sp.csr_matrix:
-        """``(G Z)^T (G Z)`` with both products' symbolic parts reused."""
-        if self._penalty is None or g is not self._g_source:
-            self._g_source, self._g = g, petsc_aij(g)
-            gz = self._g.matMult(self.z)
-            self._penalty = (gz, gz.transposeMatMult(gz))
+    def _penalty_part(self, g: Any) -> sp.csr_matrix:
+        """``(G Z)^T (G Z)`` of the PETSc factor G, both products' symbolic parts reused."""
+        if self._penalty is None or g is not self._penalty[0]:
+            gz = g.matMult(self.z)
+            self._penalty = (g, gz, gz.transposeMatMult(gz))
         else:
-            gz, gtg = self._penalty
-            self._g.matMult(self.z, result=gz)
+            _, gz, gtg = self._penalty
+            g.matMult(self.z, result=gz)
             gz.transposeMatMult(gz, result=gtg)
-        return scipy_csr(self._penalty[1])
+        return self._csr(self._penalty[2])
+
+
+class PhaseSpace(CoarseSpace):
+    """The coarse space Z, its Galerkin matrix and the correction ``Q r = Z A_Z^{-1} Z^T r``.
+
+    Args:
+        vertices: Rest positions of the shell ``(n, 3)``.
+        faces: Shell triangles.
+        hats: Vertex hats ``(n, n_c)`` (:func:`hat_matrix`).
+
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, hats: sp.csr_matrix) -> None:
+        super().__init__(vertices, faces, hats)
+        rows = 3 * self.vertex + self.component
+        order = np.lexsort((self.column, rows))
+        self._reorder(order)
+        indptr = np.searchsorted(rows[order], np.arange(3 * hats.shape[0] + 1))
+        # PETSc wraps these arrays (no copy): they live as long as the matrix
+        self.csr = (indptr.astype(PETSc.IntType), self.column.astype(PETSc.IntType), self.values)
+        z: Any = PETSc.Mat()
+        z.createAIJWithArrays((3 * hats.shape[0], self.n_columns), self.csr,
+                              comm=PETSc.COMM_SELF)
+        z.assemble()
+        self.z = z
+        self._g: tuple[sp.csr_matrix, Any] | None = None  # (scipy G, its PETSc copy)
+        self._coarse_rhs = z.createVecs()[0]
+        self._solution = self._coarse_rhs.duplicate()
+
+    def set_fields(self, x: np.ndarray, target: np.ndarray) -> None:
+        """Z's values from the positions x and the penalty target y (both ``(n, 3)``)."""
+        self._field_values(x, target)
+        self.z.stateIncrease()
+
+    def _penalty_part(self, g: Any) -> sp.csr_matrix:
+        """``(G Z)^T (G Z)`` of the scipy G (copied to PETSc once per new object)."""
+        if self._g is None or g is not self._g[0]:
+            self._g = (g, petsc_aij(g))
+        return super()._penalty_part(self._g[1])
 
     def correct(self, r: Any, out: Any) -> None:
         """``out = Z A_Z^{-1} Z^T r``."""
@@ -309,3 +350,39 @@ class DeflatedPreconditioner:
         self.residual.waxpy(-1.0, self.product, r)
         self.phase.correct(self.residual, self.product)
         y.axpy(1.0, self.product)
+
+
+def deflated_cg(comm: Any, operator: Any, multigrid: Any, phase: Any) -> Any:
+    """CG (unpreconditioned norm, nonzero start ``x_0 = Q b``) with A-DEF2 around ``multigrid``.
+
+    ``phase`` is any coarse space with ``correct(r, out)`` (:class:`PhaseSpace` or its
+    distributed form); the caller starts each solve with
+    ``ksp.getPC().getPythonContext().start(b, x)``.
+    """
+    ksp: Any = PETSc.KSP().create(comm)
+    ksp.setType("cg")
+    ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+    ksp.setInitialGuessNonzero(True)
+    ksp.setOperators(operator)
+    pc: Any = ksp.getPC()
+    pc.setType(PETSc.PC.Type.PYTHON)
+    pc.setPythonContext(DeflatedPreconditioner(operator, multigrid, phase))
+    ksp.setUp()
+    return ksp
+
+
+def field_state(rest: np.ndarray, x: np.ndarray,
+                target: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(x, y)`` as ``(n, 3)`` arrays: the state the test fields are built from.
+
+    ``target`` None: the rest positions (the test fields are then the displacement's).
+    """
+    y = rest if target is None else np.asarray(target).reshape(-1, 3)
+    return np.array(x, dtype=np.float64).reshape(-1, 3), y
+
+
+def same_state(state: tuple[np.ndarray, np.ndarray],
+               previous: tuple[np.ndarray, np.ndarray] | None) -> bool:
+    """Whether ``state`` equals ``previous`` bitwise (then Z need not be rebuilt)."""
+    return previous is not None and all(
+        np.array_equal(a, b) for a, b in zip(state, previous, strict=True))

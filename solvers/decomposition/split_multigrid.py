@@ -53,11 +53,13 @@ from solvers.linear import FactorReport, coo_aij
 from solvers.multigrid import (
     JacobiPC,
     KrylovStats,
+    LowRankOperator,
     MultigridOptions,
     forcing_term,
-    pcmg_options,
+    galerkin_levels,
+    multigrid_cg,
 )
-from solvers.phase_space import DeflatedPreconditioner, hat_matrix
+from solvers.phase_space import deflated_cg, field_state, hat_matrix, same_state
 
 
 def level_owners(fine_owner: np.ndarray, prolongations: tuple[sp.csr_matrix, ...]
@@ -138,26 +140,6 @@ def _owned_rows(m: sp.csr_matrix, rows: np.ndarray, row_index: np.ndarray,
     sub = sp.csr_matrix(m[rows])
     local_rows = np.repeat(np.arange(rows.size), np.diff(sub.indptr))
     return row_index[rows][local_rows], col_index[sub.indices], sub.data
-
-
-class _LevelOperator:
-    """``MatPython`` context of ``A_l + G_l^T G_l`` (distributed; ``G_l`` None: ``A_l``)."""
-
-    def __init__(self, a: Any, g: Any, g_diagonal: np.ndarray | float) -> None:
-        self.a, self.g, self.g_diagonal = a, g, g_diagonal
-        self.gx = None if g is None else g.createVecs()[1]
-
-    def mult(self, mat: Any, x: Any, y: Any) -> None:  # noqa: ARG002 (petsc4py signature)
-        """``y = A x + G^T (G x)``."""
-        self.a.mult(x, y)
-        if self.g is not None:
-            self.g.mult(x, self.gx)
-            self.g.multTransposeAdd(self.gx, y, y)
-
-    def getDiagonal(self, mat: Any, d: Any) -> None:  # noqa: N802, ARG002 (petsc4py names)
-        """``d = diag(A) + colsum(G .* G)``."""
-        self.a.getDiagonal(d)
-        d.getArray()[:] += self.g_diagonal
 
 
 class SplitMultigridSystem:
@@ -297,7 +279,7 @@ class SplitMultigridSystem:
         if phase is not None and phase.indefinite:
             self.stats.indefinite_skips += 1
             return self._setup_done(start, replace(phase, shift=float(tau)))
-        self._galerkin_products()
+        self._galerkin = galerkin_levels(self._fine, self.p_mats, self._galerkin)
         self._update_coarse()
         if self._ksp is None:
             self._ksp = self._create_ksp()
@@ -346,30 +328,9 @@ class SplitMultigridSystem:
         return report
 
     def _deflated_ksp(self) -> Any:
-        """CG (unpreconditioned norm, from ``x_0 = Q b``) preconditioned by A-DEF2 around PCMG."""
+        """CG from ``x_0 = Q b`` preconditioned by A-DEF2 around PCMG (phase space only)."""
         assert self.phase is not None  # only with the phase space (internal invariant)
-        ksp: Any = PETSc.KSP().create(self.comm)
-        ksp.setType("cg")
-        ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
-        ksp.setInitialGuessNonzero(True)
-        ksp.setOperators(self._operators[-1])
-        pc: Any = ksp.getPC()
-        pc.setType(PETSc.PC.Type.PYTHON)
-        pc.setPythonContext(DeflatedPreconditioner(self._operators[-1], self._ksp.getPC(),
-                                                   self.phase))  # type: ignore[arg-type]
-        ksp.setUp()
-        return ksp
-
-    def _galerkin_products(self) -> None:
-        """``A_l = P_l^T A_{l+1} P_l`` from the finest down (symbolic product reused)."""
-        if not self._galerkin:
-            mats = [self._fine]
-            for p in reversed(self.p_mats):
-                mats.append(mats[-1].PtAP(p))
-            self._galerkin = mats[::-1]
-            return
-        for level in range(len(self.p_mats) - 1, -1, -1):
-            self._galerkin[level + 1].PtAP(self.p_mats[level], result=self._galerkin[level])
+        return deflated_cg(self.comm, self._operators[-1], self._ksp.getPC(), self.phase)
 
     def _update_coarse(self) -> None:
         """``A_0 + G_0^T G_0`` into one matrix of fixed pattern (their union)."""
@@ -390,7 +351,7 @@ class SplitMultigridSystem:
     def _level_operator(self, level: int) -> Any:
         """Level ``level`` (>= 1) as a ``MatPython``: ``A_l + G_l^T G_l``."""
         numbering, penalty = self.levels[level], self._penalty[level]
-        context = _LevelOperator(self._galerkin[level], *(penalty or (None, 0.0)))
+        context = LowRankOperator.of_petsc(self._galerkin[level], *(penalty or (None, 0.0)))
         sizes = (numbering.local_size, numbering.size)
         mat: Any = PETSc.Mat().createPython((sizes, sizes), context, comm=self.comm)
         mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
@@ -400,38 +361,11 @@ class SplitMultigridSystem:
     def _create_ksp(self) -> Any:
         """CG (unpreconditioned norm) + PCMG: Chebyshev/Jacobi levels, MUMPS coarse."""
         self._operators = [self._level_operator(level) for level in range(1, len(self.levels))]
-        ksp: Any = PETSc.KSP().create(self.comm)
-        prefix = f"wrinkles_split_mg{id(self)}_"
-        ksp.setOptionsPrefix(prefix)
-        ksp.setType("cg")
-        ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
-        pc: Any = ksp.getPC()
-        pc.setType("mg")
-        pc.setMGLevels(len(self.levels))
-        pc.setMGType(PETSc.PC.MGType.MULTIPLICATIVE)
-        pc.setMGCycleType(PETSc.PC.MGCycleType.V if self.options.cycle == "v"
-                          else PETSc.PC.MGCycleType.W)
-        for level, p in enumerate(self.p_mats, start=1):
-            pc.setMGInterpolation(level, p)
-        for level, op in enumerate([self._coarse, *self._operators]):
-            pc.getMGSmoother(level).setOperators(op, op)
-        ksp.setOperators(self._operators[-1])
-        python = self.options.eigen_estimate == "solve"
-        values = pcmg_options(self.options.smoother_degree, "python" if python else "jacobi")
-        db = PETSc.Options()
-        for key, value in values.items():
-            db.setValue(prefix + key, value)
-        try:  # the level smoothers read the options database during the first PCSetUp only
-            ksp.setFromOptions()
-            self._jacobi = [JacobiPC(op) for op in self._operators] if python else []
-            for level, jacobi in enumerate(self._jacobi, start=1):
-                level_pc = pc.getMGSmoother(level).getPC()
-                level_pc.setType(PETSc.PC.Type.PYTHON)
-                level_pc.setPythonContext(jacobi)
-            ksp.setUp()
-        finally:
-            for key in values:
-                db.delValue(prefix + key)
+        levels = [self._coarse, *self._operators]
+        smoothers = [self._galerkin[level] if self.options.smoother_pc == "sor" and level
+                     else op for level, op in enumerate(levels)]
+        ksp, self._jacobi = multigrid_cg(self.comm, levels, smoothers, self.p_mats,
+                                         self.options, f"wrinkles_split_mg{id(self)}_")
         self._vecs = (*self._operators[-1].createVecs(), self._operators[-1].createVecs()[0])
         return ksp
 
@@ -454,10 +388,8 @@ class SplitMultigridSystem:
         """Positions and penalty target of the next set-up (the phase space's test fields)."""
         if self.phase is None:
             return
-        y = self.phase.rest if target is None else np.asarray(target).reshape(-1, 3)
-        state = (np.array(x, dtype=np.float64).reshape(-1, 3), y)
-        if self._state is None or not all(
-                np.array_equal(a, b) for a, b in zip(state, self._state, strict=True)):
+        state = field_state(self.phase.rest, x, target)
+        if not same_state(state, self._state):
             self._state, self._fields_stale = state, True
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:

@@ -27,8 +27,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from models.backend import PETSc
-from solvers.linear import FactorReport, LinearSolverOptions, SparseDirectSolver
-from solvers.phase_space import TEST_FIELDS, hat_frames, surface_gradients, z_values
+from solvers.phase_space import CoarseSpace
 
 
 def _gathered(mat: Any, comm: Any) -> sp.csr_matrix:
@@ -41,8 +40,10 @@ def _gathered(mat: Any, comm: Any) -> sp.csr_matrix:
                           np.concatenate([[0], np.cumsum(counts)])), shape=mat.getSize())
 
 
-class SplitPhaseSpace:
+class SplitPhaseSpace(CoarseSpace):
     """Z over the ranks, the gathered ``A_Z`` and the correction ``Q r`` (module docstring).
+
+    :meth:`CoarseSpace.update` factorises ``A_Z`` from the gathered products.
 
     Args:
         vertices: Rest positions of the shell ``(n, 3)`` (the same on every rank).
@@ -59,109 +60,33 @@ class SplitPhaseSpace:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, hats: sp.csr_matrix,
                  fine: tuple[np.ndarray, np.ndarray, tuple[int, int]],
                  columns: tuple[np.ndarray, tuple[int, int]], comm: Any) -> None:
+        super().__init__(vertices, faces, hats)
         fine_dof, fine_owned, fine_sizes = fine
         hat_dof, hat_sizes = columns
         self.comm = comm
-        self.gradients = surface_gradients(vertices, faces)
-        self.rest = np.asarray(vertices, dtype=np.float64)
-        self.frames = hat_frames(vertices, faces, hats)
-        coo = hats.tocoo()
-        v, j = np.repeat(coo.row, 3 * TEST_FIELDS), np.repeat(coo.col, 3 * TEST_FIELDS)
-        c = np.tile(np.repeat(np.arange(3), TEST_FIELDS), coo.nnz)
-        m = np.tile(np.arange(TEST_FIELDS), 3 * coo.nnz)
-        self.vertex, self.component, self.field, self.hat = v, c, m, j
-        self.hat_value = np.repeat(coo.data, 3 * TEST_FIELDS)
-        self.column = TEST_FIELDS * j + m
-        self.n_columns = TEST_FIELDS * hats.shape[1]
-        self.values = np.zeros(v.size)
+        rows = 3 * self.vertex + self.component
         owned = np.zeros(fine_dof.size, dtype=bool)
         owned[fine_owned] = True
-        self.mine = np.flatnonzero(owned[3 * v + c])
+        self.mine = np.flatnonzero(owned[rows])
         z: Any = PETSc.Mat().create(comm=comm)
         z.setSizes((fine_sizes, hat_sizes))
         z.setType(PETSc.Mat.Type.AIJ)
-        z.setPreallocationCOO(fine_dof[3 * v + c][self.mine].astype(PETSc.IntType),
+        z.setPreallocationCOO(fine_dof[rows][self.mine].astype(PETSc.IntType),
                               hat_dof[self.column][self.mine].astype(PETSc.IntType))
         self.z = z
-        self._az: Any = None
-        self._galerkin: Any = None
-        self._gz: Any = None
-        self._gtg: Any = None
-        self._gram: Any = None
-        self._base: tuple[sp.csr_matrix, float] | None = None
-        self._solver: SparseDirectSolver | None = None
         self._rhs, self._solution = z.createVecRight(), z.createVecRight()
         self._scatter, self._full = PETSc.Scatter.toAll(self._rhs)
         self._range = self._rhs.getOwnershipRange()
 
     def set_fields(self, x: np.ndarray, target: np.ndarray) -> None:
         """Z's values from the positions x and the penalty target y (both ``(n, 3)``)."""
-        d = np.asarray(x, dtype=np.float64).reshape(-1, 3) - target
-        grads = np.stack([g @ d for g in self.gradients], axis=-1)
-        z_values(self.values, self.hat_value, self.vertex, self.component, self.field,
-                 self.hat, self.frames, d, grads)
-        norms = np.bincount(self.column, self.values ** 2, self.n_columns)
-        scale = np.where(norms > 0, 1.0 / np.sqrt(np.where(norms > 0, norms, 1.0)), 0.0)
-        self.values *= scale[self.column]
+        self._field_values(x, target)
         self.z.setValuesCOO(np.ascontiguousarray(self.values[self.mine],
                                                  dtype=PETSc.ScalarType))
-        self._base = None
 
-    def update(self, fine: Any, g: Any, tau: float = 0.0,
-               shift_only: bool = False) -> FactorReport:
-        """Factorise the gathered ``Z^T (A + tau I + G^T G) Z`` (collective).
-
-        Args:
-            fine: The distributed fine matrix, shift included.
-            g: The distributed penalty factor G (None without penalty).
-            tau: The shift in ``fine``.
-            shift_only: Same fields and matrix as the last full update up to the shift:
-                ``Z^T A Z + (tau - tau_last) Z^T Z`` without the fine products.
-
-        Returns:
-            The LDL^T report (``usable_spd`` False: do not use the correction).
-
-        """
-        if shift_only and self._base is not None:
-            base, base_tau = self._base
-            total = (base + (tau - base_tau) * self._gram_matrix()).tocsr()
-        else:
-            total = self._galerkin_matrix(fine)
-            if g is not None:
-                total = (total + self._penalty_part(g)).tocsr()
-            self._base = (total, tau)
-        diagonal = total.diagonal()
-        total = (total + sp.diags(np.where(diagonal > 0, 0.0, 1.0))).tocsr()
-        total.sort_indices()
-        if self._solver is None or self._solver.pattern.nnz != total.nnz:
-            self._solver = SparseDirectSolver(total, LinearSolverOptions(symmetric="ldlt"))
-        return self._solver.factorize(total)
-
-    def _galerkin_matrix(self, fine: Any) -> sp.csr_matrix:
-        """``Z^T (A Z)``, gathered (parallel products, symbolic parts reused)."""
-        if self._az is None:
-            self._az = fine.matMult(self.z)
-            self._galerkin = self.z.transposeMatMult(self._az)
-        else:
-            fine.matMult(self.z, result=self._az)
-            self.z.transposeMatMult(self._az, result=self._galerkin)
-        return _gathered(self._galerkin, self.comm)
-
-    def _penalty_part(self, g: Any) -> sp.csr_matrix:
-        """``(G Z)^T (G Z)``, gathered."""
-        if self._gz is None:
-            self._gz = g.matMult(self.z)
-            self._gtg = self._gz.transposeMatMult(self._gz)
-        else:
-            g.matMult(self.z, result=self._gz)
-            self._gz.transposeMatMult(self._gz, result=self._gtg)
-        return _gathered(self._gtg, self.comm)
-
-    def _gram_matrix(self) -> sp.csr_matrix:
-        """``Z^T Z`` of the current fields, gathered."""
-        self._gram = (self.z.transposeMatMult(self.z) if self._gram is None
-                      else self.z.transposeMatMult(self.z, result=self._gram))
-        return _gathered(self._gram, self.comm)
+    def _csr(self, mat: Any) -> sp.csr_matrix:
+        """Gather a distributed product of Z to every rank as one scipy matrix."""
+        return _gathered(mat, self.comm)
 
     def correct(self, r: Any, out: Any) -> None:
         """``out = Z A_Z^{-1} Z^T r`` (collective)."""

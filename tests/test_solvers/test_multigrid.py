@@ -320,7 +320,7 @@ def test_target_fraction_raises_the_last_cg_tolerance() -> None:
 @pytest.mark.parametrize("threads", [1, 2])
 def test_low_rank_operator_vertex_kernel_matches_the_aij_product(threads: int) -> None:
     """``A x + G^T G x`` by the vertex-level kernel (``G = H (x) I_3``) and by PETSc AIJ."""
-    from solvers.multigrid import _LowRankOperator, _python_operator
+    from solvers.multigrid import LowRankOperator, _python_operator
 
     rng = np.random.default_rng(4)
     n, c = 40, 7
@@ -332,7 +332,7 @@ def test_low_rank_operator_vertex_kernel_matches_the_aij_product(threads: int) -
     other[1, 3] = 0.5  # not H (x) I_3: the PETSc path
     x = rng.standard_normal(3 * n)
     for g, vertex in ((kron, True), (other.tocsr(), False)):
-        op = _LowRankOperator(petsc_aij(a), g, threads)
+        op = LowRankOperator(petsc_aij(a), g, threads)
         assert (op.vertex is not None) == vertex
         mat = _python_operator(op)
         xv, yv = mat.createVecs()

@@ -27,14 +27,13 @@ its own vertices on every level and PETSc does the products and the messages.
   or with ``eigen_estimate = "solve"`` once per Newton solve (Jacobi diagonals refreshed at
   every set-up; a failed CG with bounds from an earlier Newton iteration is repeated once
   with new bounds), as in the serial solver.
-
 * With ``options.phase_space`` the wrinkle-phase coarse space of :mod:`.split_phase` deflates
   CG (A-DEF2 around the V-cycle, from ``x_0 = Q b``), as in the serial solver; an indefinite
   ``Z^T A Z`` ends the set-up with a failed report (the Newton moves to its next shift).
 
-The serial solver's SBAIJ level copies, threads and direct fallback have no distributed
-form here; with one rank the product keeps the serial
-solver.
+The PCMG set-up, the Galerkin levels and the deflated CG are the serial solver's own
+functions; its SBAIJ level copies, threads and direct fallback have no distributed form here.
+With one rank the product keeps the serial solver.
 """
 
 from __future__ import annotations

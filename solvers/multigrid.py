@@ -660,7 +660,104 @@ class KrylovSystem(NewtonSystem, Protocol):
         """Positions and penalty target of the next set-up."""
 
 
-class MultigridLinearSystem:
+class KrylovBase:
+    """State and steps shared by the serial and the distributed multigrid Newton systems.
+
+    The forcing term (:func:`forcing_term`), the once-per-solve Chebyshev bounds, the phase
+    space's test-field state and the set-up counts; a subclass sets ``self.phase`` and
+    ``self._operators`` (the level operators whose state it increases for new bounds).
+
+    Args:
+        options: Krylov / multigrid options.
+
+    """
+
+    def __init__(self, options: MultigridOptions) -> None:
+        self.options = options
+        self.stats = KrylovStats()
+        self.eta = options.rtol
+        self.phase: Any = None
+        self._grad_history: tuple[float, float] = (0.0, options.ew_max)
+        self._operators: list[Any] = []
+        self._estimate_due = True
+        self._bounds_stale = False
+        self._state: tuple[np.ndarray, np.ndarray] | None = None
+        self._fields_stale = True
+
+    def reset_forcing(self) -> None:
+        """Start a new Newton solve: the next forcing term is ``ew_max`` (no history).
+
+        The next set-up also re-estimates the Chebyshev bounds (``eigen_estimate``).
+        """
+        self._grad_history = (0.0, self.options.ew_max)
+        self._estimate_due = True
+
+    def set_gradient_norm(self, grad_norm: float, target: float = 0.0) -> None:
+        """Choose the CG tolerance of this Newton iteration from ``||g_k||`` (forcing term).
+
+        Called once per Newton iteration: from now on the Chebyshev bounds of earlier
+        iterations count as stale (see :meth:`solve`). ``target`` is the Newton gradient
+        tolerance (0 = unknown): with ``target_fraction`` the CG tolerance is raised to
+        ``min(ew_max, target_fraction target / ||g_k||)`` when that is larger, since the
+        linearised gradient after the step, ``||g_k + A dx|| <= eta ||g_k||``, then already
+        lies below ``target_fraction`` times the tolerance.
+        """
+        self._bounds_stale = True
+        self.eta, self._grad_history = forcing_term(self.options, grad_norm,
+                                                    self._grad_history, target)
+
+    def set_state(self, x: np.ndarray, target: np.ndarray | None) -> None:
+        """Positions and penalty target of the next set-up (the phase space's test fields)."""
+        if self.phase is None:
+            return
+        state = field_state(self.phase.rest, x, target)
+        if not same_state(state, self._state):
+            self._state, self._fields_stale = state, True
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """CG to the forcing term; :meth:`_failed` when CG does not pass.
+
+        With ``eigen_estimate = "solve"`` a failed CG whose Chebyshev bounds come from an
+        earlier Newton iteration is repeated once with new bounds (an underestimated
+        ``lambda_max`` makes the smoother amplify, the preconditioner indefinite); bounds
+        estimated in this Newton iteration stay valid for its shifted retries, since a shift
+        ``tau`` only moves the spectrum of ``(D + tau)^{-1} (A + tau I)`` towards 1.
+        """
+        start = time.perf_counter()
+        try:
+            x = self._accepted_cg(rhs)
+            if x is None and self._bounds_stale and self.options.eigen_estimate == "solve":
+                self._estimate()
+                x = self._accepted_cg(rhs)
+            return x if x is not None else self._failed(rhs)
+        finally:
+            self.stats.solves += 1
+            self.stats.solve_time += time.perf_counter() - start
+
+    def _accepted_cg(self, rhs: np.ndarray) -> np.ndarray | None:
+        """One CG solve; its solution if it passed the true-residual test (subclass)."""
+        raise NotImplementedError
+
+    def _failed(self, rhs: np.ndarray) -> np.ndarray:
+        """Return the direction when CG failed (subclass: a fallback solve, or NaN)."""
+        raise NotImplementedError
+
+    def _estimate(self) -> None:
+        """Make the Chebyshev smoothers re-estimate their bounds at the next solve."""
+        for op in self._operators:
+            op.stateIncrease()
+        self.stats.eigen_estimates += 1
+        self._bounds_stale = False
+
+    def _setup_done(self, start: float, report: FactorReport) -> FactorReport:
+        """Count a set-up begun at ``start``; the report with its time."""
+        elapsed = time.perf_counter() - start
+        self.stats.setups += 1
+        self.stats.setup_time += elapsed
+        return replace(report, numeric_time=elapsed)
+
+
+class MultigridLinearSystem(KrylovBase):
     """CG + geometric multigrid (PETSc PCMG) for ``(A + tau I + G^T G) dx = b``.
 
     Same interface as the direct Newton-system solver (``factorize(ev, tau)``, ``solve(b)``,
@@ -685,19 +782,16 @@ class MultigridLinearSystem:
         for fine, coarse in zip(prolongations[1:], prolongations[:-1], strict=True):
             if fine.shape[1] != coarse.shape[0]:
                 raise InputError("MultigridLinearSystem: prolongation shapes do not chain")
+        super().__init__(options)
         self.p_scipy = tuple(sp.csr_matrix(p) for p in prolongations)
         self.p_mats = [petsc_aij(p, block=3) for p in self.p_scipy]
-        self.options, self.fallback = options, fallback
+        self.fallback = fallback
         self.n = self.p_scipy[-1].shape[0]
-        self.stats = KrylovStats()
-        self.eta = options.rtol
-        self._grad_history: tuple[float, float] = (0.0, options.ew_max)
         self._fine: FineMatrix | None = None
         self._galerkin: list[Any] = []
         self._g_source: sp.csr_matrix | None = None
         self._g_levels: list[sp.csr_matrix | None] = []
         self._coarse_penalty: sp.csr_matrix | None = None
-        self._operators: list[Any] = []
         self._coarse: Any = None
         self._coarse_pattern: sp.csr_matrix | None = None
         self._ksp: Any = None
@@ -705,11 +799,7 @@ class MultigridLinearSystem:
         self._jacobi: list[JacobiPC] = []
         self._products: list[LowRankOperator] = []
         self._sbaij: list[_SymmetricCopy] = []
-        self._estimate_due = True
-        self._bounds_stale = False
         self.phase = self._phase_space(geometry)
-        self._state: tuple[np.ndarray, np.ndarray] | None = None
-        self._fields_stale = True
         self._deflated: Any = None
         self._phase_ready = False
 
@@ -722,14 +812,6 @@ class MultigridLinearSystem:
                              "(MultigridLinearSystem(..., geometry=(vertices, faces)))")
         vertex_matrices = tuple(p[::3, ::3].tocsr() for p in self.p_scipy)
         return PhaseSpace(*geometry, hat_matrix(vertex_matrices, self.options.phase_level))
-
-    def set_state(self, x: np.ndarray, target: np.ndarray | None) -> None:
-        """Positions and penalty target of the next set-up (the phase space's test fields)."""
-        if self.phase is None:
-            return
-        state = field_state(self.phase.rest, x, target)
-        if not same_state(state, self._state):
-            self._state, self._fields_stale = state, True
 
     # ----------------------------------------------------------------------------- set-up
 
@@ -769,13 +851,6 @@ class MultigridLinearSystem:
             self._deflated = self._deflated_ksp()
         return self._setup_done(start, FactorReport(success=True, shift=float(tau)))
 
-    def _setup_done(self, start: float, report: FactorReport) -> FactorReport:
-        """Count a set-up begun at ``start``; the report with its time."""
-        elapsed = time.perf_counter() - start
-        self.stats.setups += 1
-        self.stats.setup_time += elapsed
-        return replace(report, numeric_time=elapsed)
-
     def _update_phase(self, g: sp.csr_matrix | None, tau: float, same_matrix: bool
                       ) -> FactorReport | None:
         """Phase space: new test fields, Galerkin matrix and its factorisation (None: off).
@@ -807,10 +882,7 @@ class MultigridLinearSystem:
         if g is self._g_source and self._g_levels:
             return
         self._g_source = g
-        chain: list[sp.csr_matrix | None] = [None if g is None else sp.csr_matrix(g)]
-        for p in reversed(self.p_scipy):
-            chain.append(None if chain[-1] is None else (chain[-1] @ p).tocsr())
-        self._g_levels = chain[::-1]
+        self._g_levels = penalty_levels(g, self.p_scipy)
         g0 = self._g_levels[0]
         self._coarse_penalty = None if g0 is None else (g0.T @ g0).tocsr()
         self._coarse_pattern = None
@@ -852,13 +924,6 @@ class MultigridLinearSystem:
         if self._estimate_due:
             self._estimate()
             self._estimate_due = self.options.eigen_estimate == "setup"
-
-    def _estimate(self) -> None:
-        """Make the Chebyshev smoothers re-estimate their bounds at the next solve."""
-        for op in self._operators:
-            op.stateIncrease()
-        self.stats.eigen_estimates += 1
-        self._bounds_stale = False
 
     def _refresh_products(self) -> None:
         """Point the level operators at this set-up's ``A_l`` (an SBAIJ copy if asked)."""
@@ -903,28 +968,6 @@ class MultigridLinearSystem:
 
     # ----------------------------------------------------------------------------- solve
 
-    def reset_forcing(self) -> None:
-        """Start a new Newton solve: the next forcing term is ``ew_max`` (no history).
-
-        The next set-up also re-estimates the Chebyshev bounds (``eigen_estimate``).
-        """
-        self._grad_history = (0.0, self.options.ew_max)
-        self._estimate_due = True
-
-    def set_gradient_norm(self, grad_norm: float, target: float = 0.0) -> None:
-        """Choose the CG tolerance of this Newton iteration from ``||g_k||`` (forcing term).
-
-        Called once per Newton iteration: from now on the Chebyshev bounds of earlier
-        iterations count as stale (see :meth:`solve`). ``target`` is the Newton gradient
-        tolerance (0 = unknown): with ``target_fraction`` the CG tolerance is raised to
-        ``min(ew_max, target_fraction target / ||g_k||)`` when that is larger, since the
-        linearised gradient after the step, ``||g_k + A dx|| <= eta ||g_k||``, then already
-        lies below ``target_fraction`` times the tolerance.
-        """
-        self._bounds_stale = True
-        self.eta, self._grad_history = forcing_term(self.options, grad_norm,
-                                                    self._grad_history, target)
-
     def apply(self, x: np.ndarray) -> np.ndarray:
         """Return ``(A + tau I + G^T G) x`` of the current system (scipy; true residuals)."""
         assert self._current is not None  # factorize() ran first (internal invariant)
@@ -938,26 +981,6 @@ class MultigridLinearSystem:
         """``||b - A x|| / ||b||`` of the current system."""
         norm_b = float(np.linalg.norm(rhs)) or 1.0
         return float(np.linalg.norm(rhs - self.apply(x))) / norm_b
-
-    def solve(self, rhs: np.ndarray) -> np.ndarray:
-        """CG to the forcing term; fallback to the direct solve on failure (see options).
-
-        With ``eigen_estimate = "solve"`` a failed CG whose Chebyshev bounds come from an
-        earlier Newton iteration is repeated once with new bounds (an underestimated
-        ``lambda_max`` makes the smoother amplify, the preconditioner indefinite); bounds
-        estimated in this Newton iteration stay valid for its shifted retries, since a shift
-        ``tau`` only moves the spectrum of ``(D + tau)^{-1} (A + tau I)`` towards 1.
-        """
-        start = time.perf_counter()
-        try:
-            x = self._accepted_cg(rhs)
-            if x is None and self._bounds_stale and self.options.eigen_estimate == "solve":
-                self._estimate()
-                x = self._accepted_cg(rhs)
-            return x if x is not None else self._fallback(rhs)
-        finally:
-            self.stats.solves += 1
-            self.stats.solve_time += time.perf_counter() - start
 
     def _accepted_cg(self, rhs: np.ndarray) -> np.ndarray | None:
         """CG from zero; the solution if it converged to a true residual within the slack."""
@@ -984,8 +1007,8 @@ class MultigridLinearSystem:
             vec.destroy()
         return out, int(ksp.getIterationNumber()), int(ksp.getConvergedReason())
 
-    def _fallback(self, rhs: np.ndarray) -> np.ndarray:
-        """Direct solve of the current system, or NaN (a failed direction) without fallback."""
+    def _failed(self, rhs: np.ndarray) -> np.ndarray:
+        """Solve the current system directly, or NaN (a failed direction) without fallback."""
         if self.fallback is None or not self.options.fallback or self._current is None:
             return np.full(self.n, np.nan)
         start = time.perf_counter()
@@ -1001,6 +1024,15 @@ class MultigridLinearSystem:
         direct = self.fallback.times() if self.fallback is not None else (0.0, 0.0, 0.0)
         return (self.stats.setup_time + direct[0], direct[1],
                 self.stats.solve_time - self.stats.fallback_time + direct[2])
+
+
+def penalty_levels(g: sp.csr_matrix | None, prolongations: tuple[sp.csr_matrix, ...]
+                   ) -> list[sp.csr_matrix | None]:
+    """Return the penalty factor on every level, coarse to fine: ``G_l = G_{l+1} P_l``."""
+    chain: list[sp.csr_matrix | None] = [None if g is None else sp.csr_matrix(g)]
+    for p in reversed(prolongations):
+        chain.append(None if chain[-1] is None else (chain[-1] @ p).tocsr())
+    return chain[::-1]
 
 
 def galerkin_levels(fine: Any, prolongations: list[Any], levels: list[Any]) -> list[Any]:

@@ -157,9 +157,10 @@ class CoarseSpace:
         self._penalty: tuple[Any, Any, Any] | None = None  # (G, G Z, (G Z)^T (G Z))
 
     def _reorder(self, order: np.ndarray) -> None:
-        """Permute the entries (e.g. into Z's CSR order)."""
+        """Permute or select the entries (Z's CSR order; a rank's own rows)."""
         for name in ("vertex", "hat", "component", "field", "hat_value", "column"):
             setattr(self, name, getattr(self, name)[order])
+        self.values = np.zeros(order.size, dtype=PETSc.ScalarType)
 
     def _field_values(self, x: np.ndarray, target: np.ndarray) -> None:
         """Every entry's value from x and the target y (``(n, 3)``), columns normalised.
@@ -170,7 +171,7 @@ class CoarseSpace:
         grads = np.stack([g @ d for g in self.gradients], axis=-1)      # (n, 3 comp, 3 dir)
         z_values(self.values, self.hat_value, self.vertex, self.component, self.field,
                  self.hat, self.frames, d, grads)
-        norms = np.bincount(self.column, self.values ** 2, self.n_columns)
+        norms = self._column_sums(np.bincount(self.column, self.values ** 2, self.n_columns))
         scale = np.where(norms > 0, 1.0 / np.sqrt(np.where(norms > 0, norms, 1.0)), 0.0)
         self.values *= scale[self.column]
         self._base, self._gram = None, (self._gram[0], None)
@@ -210,6 +211,10 @@ class CoarseSpace:
     def _csr(self, mat: Any) -> sp.csr_matrix:
         """Copy a product of Z into one scipy matrix (the distributed space gathers it)."""
         return scipy_csr(mat)
+
+    def _column_sums(self, sums: np.ndarray) -> np.ndarray:
+        """Column sums of the entries held here, over all of Z (serial: all are here)."""
+        return sums
 
     def _galerkin_matrix(self, fine: Any) -> sp.csr_matrix:
         """``Z^T (A Z)``: two products, symbolic parts reused (cheaper than ``MatPtAP``)."""

@@ -51,14 +51,14 @@ from solvers.decomposition.split_phase import SplitPhaseSpace
 from solvers.linear import FactorReport, coo_aij
 from solvers.multigrid import (
     JacobiPC,
-    KrylovStats,
+    KrylovBase,
     LowRankOperator,
     MultigridOptions,
-    forcing_term,
     galerkin_levels,
     multigrid_cg,
+    penalty_levels,
 )
-from solvers.phase_space import deflated_cg, field_state, hat_matrix, same_state
+from solvers.phase_space import deflated_cg, hat_matrix
 
 
 def level_owners(fine_owner: np.ndarray, prolongations: tuple[sp.csr_matrix, ...]
@@ -76,8 +76,8 @@ def level_owners(fine_owner: np.ndarray, prolongations: tuple[sp.csr_matrix, ...
             raise InputError("level_owners: a coarse vertex has no finer vertex (column of S_l "
                              "empty)")
         heaviest = np.maximum.reduceat(s.data, s.indptr[:-1])
-        is_max = s.data == np.repeat(heaviest, counts)
-        first = np.flatnonzero(is_max)[np.searchsorted(np.flatnonzero(is_max), s.indptr[:-1])]
+        hits = np.flatnonzero(s.data == np.repeat(heaviest, counts))
+        first = hits[np.searchsorted(hits, s.indptr[:-1])]  # the first heaviest per column
         owners.append(owners[-1][s.indices[first]])
     return owners[::-1]
 
@@ -141,7 +141,7 @@ def _owned_rows(m: sp.csr_matrix, rows: np.ndarray, row_index: np.ndarray,
     return row_index[rows][local_rows], col_index[sub.indices], sub.data
 
 
-class SplitMultigridSystem:
+class SplitMultigridSystem(KrylovBase):
     """CG + PCMG for ``(A + tau I + G^T G) dx = b`` over ``comm`` (module docstring).
 
     The Newton-system interface of :class:`~solvers.shell_newton.ShellNewtonSolver`
@@ -165,7 +165,8 @@ class SplitMultigridSystem:
                  geometry: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         if not prolongations:
             raise InputError("SplitMultigridSystem: the hierarchy needs >= 1 subdivision level")
-        self.energy, self.options, self.comm = energy, options, energy.comm
+        super().__init__(options)
+        self.energy, self.comm = energy, energy.comm
         rank, size = self.comm.rank, self.comm.size
         owners = level_owners(energy.layout.vertex_rank, prolongations)
         self.levels = [LevelNumbering.build(o, rank, size) for o in owners]
@@ -175,28 +176,20 @@ class SplitMultigridSystem:
                              "rank-by-rank vertex order")
         self.p_mats = [self._prolongation(p, self.levels[i + 1], self.levels[i])
                        for i, p in enumerate(prolongations)]
-        self.stats = KrylovStats()
-        self.eta = options.rtol
-        self._history: tuple[float, float] = (0.0, options.ew_max)
-        self._coarse_penalty: Any = None
-        self._penalty = self._penalty_levels(g, prolongations, cluster_rank)
+        self._penalty, self._coarse_penalty = self._penalty_levels(g, prolongations,
+                                                                   cluster_rank)
         self._fine: Any = None
         self._fine_values = np.zeros(0)
         self._fine_diag = np.zeros(0, dtype=np.int64)
         self._galerkin: list[Any] = []
         self._coarse: Any = None
-        self._operators: list[Any] = []
         self._ksp: Any = None
         self._vecs: tuple[Any, Any, Any] | None = None
         self._current: tuple[Any, float] | None = None
         self.phase = self._phase_space(prolongations, geometry)
-        self._state: tuple[np.ndarray, np.ndarray] | None = None
-        self._fields_stale = True
         self._phase_ready = False
         self._deflated: Any = None
         self._jacobi: list[JacobiPC] = []
-        self._estimate_due = True
-        self._bounds_stale = False
 
     def _phase_space(self, prolongations: tuple[sp.csr_matrix, ...],
                      geometry: tuple[np.ndarray, np.ndarray] | None) -> SplitPhaseSpace | None:
@@ -221,14 +214,16 @@ class SplitMultigridSystem:
                          (coarse.local_size, coarse.size), coo)
 
     def _penalty_levels(self, g: sp.csr_matrix | None, prolongations: tuple[sp.csr_matrix, ...],
-                        cluster_rank: np.ndarray) -> list[tuple[Any, np.ndarray] | None]:
-        """Per level (coarse to fine): ``(G_l as MATMPIAIJ, owned colsum(G_l .* G_l))``."""
+                        cluster_rank: np.ndarray
+                        ) -> tuple[list[tuple[Any, np.ndarray] | None], Any]:
+        """Return the distributed penalty of every level and of the coarse matrix.
+
+        Per level (coarse to fine) ``(G_l as MATMPIAIJ, owned colsum(G_l .* G_l))``, then
+        ``G_0^T G_0`` as MATMPIAIJ (both None without penalty).
+        """
         if g is None:
-            return [None] * len(self.levels)
-        chain = [sp.csr_matrix(g)]
-        for p in reversed(prolongations):
-            chain.append(sp.csr_matrix(chain[-1] @ p))
-        chain = chain[::-1]
+            return [None] * len(self.levels), None
+        chain = [sp.csr_matrix(m) for m in penalty_levels(g, prolongations)]
         rows = LevelNumbering.build(np.asarray(cluster_rank, dtype=np.int64),
                                     self.comm.rank, self.comm.size)
         out: list[tuple[Any, np.ndarray] | None] = []
@@ -238,12 +233,10 @@ class SplitMultigridSystem:
                             (level.local_size, level.size), coo)
             colsum = np.asarray(gl.multiply(gl).sum(axis=0)).ravel()
             out.append((mat, colsum[level.owned]))
-        g0 = chain[0]
-        coarse = self.levels[0]
-        self._coarse_penalty = _rect_aij(
+        g0, coarse = chain[0], self.levels[0]
+        return out, _rect_aij(
             self.comm, (coarse.local_size, coarse.size), (coarse.local_size, coarse.size),
             _owned_rows(sp.csr_matrix(g0.T @ g0), coarse.owned, coarse.dof, coarse.dof))
-        return out
 
     # ----------------------------------------------------------------------------- set-up
 
@@ -291,20 +284,6 @@ class SplitMultigridSystem:
         if self.phase is not None and self._deflated is None:
             self._deflated = self._deflated_ksp()
         return self._setup_done(start, FactorReport(success=True, shift=float(tau)))
-
-    def _estimate(self) -> None:
-        """Make the smoothers re-read their operators (Chebyshev bounds) at the next solve."""
-        for op in self._operators:
-            op.stateIncrease()
-        self.stats.eigen_estimates += 1
-        self._bounds_stale = False
-
-    def _setup_done(self, start: float, report: FactorReport) -> FactorReport:
-        """Count a set-up begun at ``start``; the report with its time."""
-        elapsed = time.perf_counter() - start
-        self.stats.setups += 1
-        self.stats.setup_time += elapsed
-        return replace(report, numeric_time=elapsed)
 
     def _update_phase(self, tau: float, same_matrix: bool) -> FactorReport | None:
         """Phase space: new test fields, ``A_Z`` and its factorisation (None: off).
@@ -365,48 +344,15 @@ class SplitMultigridSystem:
                      else op for level, op in enumerate(levels)]
         ksp, self._jacobi = multigrid_cg(self.comm, levels, smoothers, self.p_mats,
                                          self.options, f"wrinkles_split_mg{id(self)}_")
-        self._vecs = (*self._operators[-1].createVecs(), self._operators[-1].createVecs()[0])
+        b, x = self._operators[-1].createVecs()
+        self._vecs = (b, x, b.duplicate())  # right-hand side, solution, residual
         return ksp
 
     # ----------------------------------------------------------------------------- solve
 
-    def reset_forcing(self) -> None:
-        """Start a new Newton solve: no forcing history, new Chebyshev bounds at the set-up."""
-        self._history = (0.0, self.options.ew_max)
-        self._estimate_due = True
-
-    def set_gradient_norm(self, grad_norm: float, target: float = 0.0) -> None:
-        """Choose this Newton iteration's CG tolerance (:func:`solvers.multigrid.forcing_term`).
-
-        From now on the Chebyshev bounds of earlier iterations count as stale (:meth:`solve`).
-        """
-        self._bounds_stale = True
-        self.eta, self._history = forcing_term(self.options, grad_norm, self._history, target)
-
-    def set_state(self, x: np.ndarray, target: np.ndarray | None) -> None:
-        """Positions and penalty target of the next set-up (the phase space's test fields)."""
-        if self.phase is None:
-            return
-        state = field_state(self.phase.rest, x, target)
-        if not same_state(state, self._state):
-            self._state, self._fields_stale = state, True
-
-    def solve(self, rhs: np.ndarray) -> np.ndarray:
-        """``dx`` (3n,) on every rank by CG from 0 to the forcing term; NaN when CG fails.
-
-        With ``eigen_estimate = "solve"`` a failed CG whose Chebyshev bounds come from an
-        earlier Newton iteration is repeated once with new bounds.
-        """
-        start = time.perf_counter()
-        try:
-            x = self._accepted_cg(rhs)
-            if x is None and self._bounds_stale and self.options.eigen_estimate == "solve":
-                self._estimate()
-                x = self._accepted_cg(rhs)
-            return x if x is not None else np.full(3 * self.energy.n_vertices, np.nan)
-        finally:
-            self.stats.solves += 1
-            self.stats.solve_time += time.perf_counter() - start
+    def _failed(self, rhs: np.ndarray) -> np.ndarray:
+        """Return NaN (a failed direction: the shell Newton moves to its next shift)."""
+        return np.full(3 * self.energy.n_vertices, np.nan)
 
     def _accepted_cg(self, rhs: np.ndarray) -> np.ndarray | None:
         """CG from 0 (from ``Q b`` with the phase space); ``dx`` if the true residual passes."""

@@ -11,8 +11,8 @@ used by the deflation preconditioner A-DEF2 (Tang, Nabben, Vuik & Erlangga, J. S
 
 * Z is a ``MATMPIAIJ`` whose rows are the fine dofs of each rank (PETSc numbering of
   :class:`~.split_multigrid.LevelNumbering`) and whose columns are numbered by the owner of
-  each hat (3 per hat); its values are computed from the full x on every rank (the column
-  norms need all rows) and each rank sets its rows;
+  each hat (3 per hat); each rank computes the entries of its own rows (from the full x),
+  the column norms summed over the ranks;
 * ``Z^T (A Z)`` and ``(G Z)^T (G Z)`` are parallel products (symbolic parts reused); ``A_Z``
   is small (3 columns per coarse hat) and is gathered to every rank and factorised there by
   the serial LDL^T, whose inertia says whether A is indefinite (as in the serial space);
@@ -64,15 +64,14 @@ class SplitPhaseSpace(CoarseSpace):
         fine_dof, fine_owned, fine_sizes = fine
         hat_dof, hat_sizes = columns
         self.comm = comm
-        rows = 3 * self.vertex + self.component
         owned = np.zeros(fine_dof.size, dtype=bool)
         owned[fine_owned] = True
-        self.mine = np.flatnonzero(owned[rows])
+        self._reorder(np.flatnonzero(owned[3 * self.vertex + self.component]))  # own rows only
         z: Any = PETSc.Mat().create(comm=comm)
         z.setSizes((fine_sizes, hat_sizes))
         z.setType(PETSc.Mat.Type.AIJ)
-        z.setPreallocationCOO(fine_dof[rows][self.mine].astype(PETSc.IntType),
-                              hat_dof[self.column][self.mine].astype(PETSc.IntType))
+        z.setPreallocationCOO(fine_dof[3 * self.vertex + self.component].astype(PETSc.IntType),
+                              hat_dof[self.column].astype(PETSc.IntType))
         self.z = z
         self._rhs, self._solution = z.createVecRight(), z.createVecRight()
         self._scatter, self._full = PETSc.Scatter.toAll(self._rhs)
@@ -81,12 +80,15 @@ class SplitPhaseSpace(CoarseSpace):
     def set_fields(self, x: np.ndarray, target: np.ndarray) -> None:
         """Z's values from the positions x and the penalty target y (both ``(n, 3)``)."""
         self._field_values(x, target)
-        self.z.setValuesCOO(np.ascontiguousarray(self.values[self.mine],
-                                                 dtype=PETSc.ScalarType))
+        self.z.setValuesCOO(self.values)
 
     def _csr(self, mat: Any) -> sp.csr_matrix:
         """Gather a distributed product of Z to every rank as one scipy matrix."""
         return _gathered(mat, self.comm)
+
+    def _column_sums(self, sums: np.ndarray) -> np.ndarray:
+        """Add every rank's column sums (each rank holds the entries of its own rows)."""
+        return np.asarray(self.comm.allreduce(sums))
 
     def correct(self, r: Any, out: Any) -> None:
         """``out = Z A_Z^{-1} Z^T r`` (collective)."""

@@ -190,7 +190,7 @@ class ShellEnergy:
 
     def __init__(self, topology: ShellTopology, rest: RestState, params: ShellParams,
                  H: sp.spmatrix | sp.sparray | np.ndarray | None = None) -> None:
-        """Set up active terms, the fixed Hessian pattern and the constant penalty parts.
+        """Set up active terms and the constant penalty parts (the pattern: on first use).
 
         Args:
             topology: Shell connectivity.
@@ -216,7 +216,15 @@ class ShellEnergy:
         self._flip_weights = barrier_weights(rest.positions, topology.faces[self._flip])
         self._bend_weights = params.k_B * rest.hinge_weights
         self._terms = [term for term in self._local_terms() if term.stencils.shape[0] > 0]
-        self._build_pattern()
+        parts = vertex_parts(topology.faces, n, params.threads)
+        self._schedules = {term.name: StencilSchedule.build(term.stencils, parts)
+                           for term in self._terms if term.fused}
+        assembled = self._penalty is not None and params.penalty_hessian == "assembled"
+        self._factor = (penalty_factor(self._penalty, params.k_P)
+                        if self._penalty is not None and not assembled else None)
+        self._pattern: StencilPattern | None = None
+        self._maps: dict[str, ScatterMap] = {}
+        self._hess_base: np.ndarray | None = None
 
     def _local_terms(self) -> list[StencilTerm]:
         """Return the local terms with a positive stiffness, in a fixed order."""
@@ -244,22 +252,24 @@ class ShellEnergy:
         return flip_barrier(x, faces, rest_area, weight, self._ref_normals[self._flip],
                             s_hat=p.flip_activation, stiffness=p.k_F, **kw)
 
-    def _build_pattern(self) -> None:
-        """Build the fixed CSR pattern of active stencils (+ H^T H when assembled) once."""
-        stencils = {term.name: term.stencils for term in self._terms}
-        assembled = self._penalty is not None and self.params.penalty_hessian == "assembled"
-        gram = penalty_gram(self._penalty) if assembled and self._penalty else None
-        self.pattern = StencilPattern.from_stencils(
-            list(stencils.values()), self.topology.n_vertices,
-            extra=[gram] if gram is not None else [])
-        self._maps: dict[str, ScatterMap] = dict(zip(stencils, self.pattern.maps, strict=True))
-        parts = vertex_parts(self.topology.faces, self.n_vertices, self.params.threads)
-        self._schedules = {term.name: StencilSchedule.build(term.stencils, parts)
-                           for term in self._terms if term.fused}
-        self._hess_base = (self.pattern.extra_data(0, gram, 2.0 * self.params.k_P)
-                           if gram is not None else None)
-        self._factor = (penalty_factor(self._penalty, self.params.k_P)
-                        if self._penalty is not None and not assembled else None)
+    @property
+    def pattern(self) -> StencilPattern:
+        """The fixed CSR pattern of the Hessian (+ H^T H when assembled), built on first use.
+
+        Only order-2 evaluations need it: an energy used for values and gradients alone
+        (e.g. the whole shell next to a solver split over ranks) never holds it.
+        """
+        if self._pattern is None:
+            stencils = {term.name: term.stencils for term in self._terms}
+            gram = (penalty_gram(self._penalty) if self._penalty is not None
+                    and self.params.penalty_hessian == "assembled" else None)
+            self._pattern = StencilPattern.from_stencils(
+                list(stencils.values()), self.topology.n_vertices,
+                extra=[gram] if gram is not None else [])
+            self._maps = dict(zip(stencils, self._pattern.maps, strict=True))
+            self._hess_base = (self._pattern.extra_data(0, gram, 2.0 * self.params.k_P)
+                               if gram is not None else None)
+        return self._pattern
 
     @property
     def n_vertices(self) -> int:
@@ -352,7 +362,8 @@ class ShellEnergy:
         xc = check_positions(x, self.n_vertices)
         data = None
         if order >= 2:
-            data = np.zeros(self.pattern.nnz) if self._hess_base is None else self._hess_base.copy()
+            nnz = self.pattern.nnz
+            data = np.zeros(nnz) if self._hess_base is None else self._hess_base.copy()
         evals = self._term_evals(xc, order, mode, data)
         grad = None
         if order >= 1:
@@ -381,7 +392,7 @@ class ShellEnergy:
         Zero everywhere when k_B = 0 or there are no hinges.
         """
         xc = check_positions(x, self.n_vertices)
-        if "bending" not in self._maps:
+        if not any(term.name == "bending" for term in self._terms):
             return np.zeros(self.n_vertices)
         areas = np.where(self.rest.vertex_areas > 0, self.rest.vertex_areas, 1.0)
         return bending_energy_density(xc, self.topology.hinges, self.rest.rest_angles,

@@ -110,6 +110,18 @@ def slice_rest(problem: ShellProblem, local: np.ndarray, faces: np.ndarray,
                      hinge_weights=r.hinge_weights[gh], vertex_areas=r.vertex_areas[local])
 
 
+def leading_rows(matrix: sp.csr_matrix, m: int) -> sp.csr_matrix:
+    """Return the first ``m`` rows of a CSR matrix, sharing its arrays.
+
+    A patch numbers its owned vertices first, so its rows of the Hessian are the leading
+    ``3 |I|`` rows of the local one; scipy's row slicing would copy them at every evaluation
+    (scipy still copies when the rows hold less than half of the entries).
+    """
+    end = int(matrix.indptr[m])
+    return sp.csr_matrix((matrix.data[:end], matrix.indices[:end], matrix.indptr[: m + 1]),
+                         shape=(m, matrix.shape[1]), copy=False)
+
+
 _OWNED_KIND = {"membrane_edge": "edges", "membrane_area": "faces", "bending": "hinges",
                "penalty": "rows", "flip_barrier": "flip_faces"}
 """Stencil kind of each term counted in the owned energy."""

@@ -48,7 +48,7 @@ import scipy.sparse as sp
 from meshes.errors import InputError
 from models.backend import PETSc
 from solvers.decomposition.split_phase import SplitPhaseSpace
-from solvers.linear import FactorReport, coo_aij
+from solvers.linear import FactorReport
 from solvers.multigrid import (
     JacobiPC,
     KrylovBase,
@@ -59,6 +59,7 @@ from solvers.multigrid import (
     penalty_levels,
 )
 from solvers.phase_space import deflated_cg, hat_matrix
+from solvers.shared_aij import SharedAIJ
 
 
 def level_owners(fine_owner: np.ndarray, prolongations: tuple[sp.csr_matrix, ...]
@@ -178,9 +179,7 @@ class SplitMultigridSystem(KrylovBase):
                        for i, p in enumerate(prolongations)]
         self._penalty, self._coarse_penalty = self._penalty_levels(g, prolongations,
                                                                    cluster_rank)
-        self._fine: Any = None
-        self._fine_values = np.zeros(0)
-        self._fine_diag = np.zeros(0, dtype=np.int64)
+        self._fine = self._fine_matrix()
         self._galerkin: list[Any] = []
         self._coarse: Any = None
         self._ksp: Any = None
@@ -240,18 +239,20 @@ class SplitMultigridSystem(KrylovBase):
 
     # ----------------------------------------------------------------------------- set-up
 
-    def _fine_matrix(self, rows: sp.csr_matrix) -> None:
-        """COO pattern of the owned Hessian rows (local columns mapped to PETSc), once."""
+    def _fine_matrix(self) -> SharedAIJ:
+        """Build the owned Hessian rows' pattern as a :class:`SharedAIJ` (PETSc columns).
+
+        Built with the solver, before any frame: its set-up arrays are gone before the
+        evaluations and products of a Newton step need memory.
+        """
         patch, fine = self.energy.patch, self.levels[-1]
-        row_dofs = fine.dof[(3 * patch.interior[:, None] + np.arange(3)).reshape(-1)]
+        indptr, indices = self.energy.hessian_rows_pattern()
         col_dofs = fine.dof[(3 * patch.local[:, None] + np.arange(3)).reshape(-1)]
-        coo_rows = np.repeat(row_dofs, np.diff(rows.indptr))
-        coo_cols = col_dofs[rows.indices]
-        self._fine_diag = np.flatnonzero(coo_rows == coo_cols)
-        if self._fine_diag.size != fine.local_size:
+        matrix = SharedAIJ(self.comm, fine.local_size, fine.size, indptr,
+                           col_dofs.astype(PETSc.IntType)[indices])
+        if matrix.diagonal.size != fine.local_size:
             raise InputError("SplitMultigridSystem: the Hessian rows must contain the diagonal")
-        self._fine = coo_aij(self.comm, fine.local_size, fine.size, coo_rows, coo_cols)
-        self._fine_values = np.zeros(coo_rows.size, dtype=PETSc.ScalarType)
+        return matrix
 
     def factorize(self, ev: Any, tau: float) -> FactorReport:
         """Set the preconditioner up for ``ev.hess + tau I (+ G^T G)`` (collective)."""
@@ -260,18 +261,14 @@ class SplitMultigridSystem(KrylovBase):
         if rows is None:
             raise InputError("SplitMultigridSystem.factorize: expected the split energy's "
                              "owned Hessian rows")
-        if self._fine is None:
-            self._fine_matrix(sp.csr_matrix(rows))
-        np.copyto(self._fine_values, rows.data)
-        self._fine_values[self._fine_diag] += tau
-        self._fine.setValuesCOO(self._fine_values)
+        self._fine.set_values(rows.data, tau)
         same_matrix = self._current is not None and self._current[0] is ev
         self._current = (ev, float(tau))
         phase = self._update_phase(tau, same_matrix)
         if phase is not None and phase.indefinite:
             self.stats.indefinite_skips += 1
             return self._setup_done(start, replace(phase, shift=float(tau)))
-        self._galerkin = galerkin_levels(self._fine, self.p_mats, self._galerkin)
+        self._galerkin = galerkin_levels(self._fine.mat, self.p_mats, self._galerkin)
         self._update_coarse()
         if self._ksp is None:
             self._ksp = self._create_ksp()
@@ -300,7 +297,7 @@ class SplitMultigridSystem(KrylovBase):
             self.phase.set_fields(x, y)
             self._fields_stale = False
         penalty = self._penalty[-1]
-        report = self.phase.update(self._fine, None if penalty is None else penalty[0], tau,
+        report = self.phase.update(self._fine.mat, None if penalty is None else penalty[0], tau,
                                    shift_only=shift_only)
         self._phase_ready = report.usable_spd
         return report

@@ -44,7 +44,7 @@ from models.backend import MPI, PETSc, begin_petsc_log
 from models.shell.dofs import stencil_dofs
 from models.shell.energy import ShellEval
 from models.shell.penalty import PenaltyOperator, penalty_factor
-from solvers.decomposition.patch_energy import PatchEnergy, ShellProblem
+from solvers.decomposition.patch_energy import PatchEnergy, ShellProblem, leading_rows
 from solvers.decomposition.patches import bisect_partition
 from solvers.decomposition.split_multigrid import SplitMultigridSystem
 from solvers.linear import (
@@ -178,6 +178,12 @@ class SplitShellEnergy:
         """Global number of vertices n."""
         return self.topology.n_vertices
 
+    def hessian_rows_pattern(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(indptr, indices)`` of this rank's Hessian rows (local columns), as evaluated."""
+        pattern = self.patch.energy.pattern
+        m = self.patch.n_free_dofs
+        return pattern.indptr[: m + 1], pattern.indices[: int(pattern.indptr[m])]
+
     def allgather_owned(self, owned: np.ndarray) -> np.ndarray:
         """Full (3n,) vector from every rank's owned dof values (3|I_r|,), identical on all."""
         buf = np.empty(int(self._counts3.sum()))
@@ -212,7 +218,7 @@ class SplitShellEnergy:
         grad = self.allgather_owned(ev.grad[:m]) if ev.grad is not None else None
         hess = None
         if ev.hess is not None:
-            rows = ev.hess[:m]
+            rows = leading_rows(ev.hess, m)
             hess = OwnedRows(rows, self.allgather_owned(rows.diagonal()))
         return ShellEval(value=value, grad=grad, hess=hess, penalty_factor=None, terms={})
 

@@ -1,0 +1,114 @@
+r"""A distributed AIJ matrix whose values are numpy arrays filled by one fixed gather.
+
+PETSc's ``MATMPIAIJ`` stores a rank's rows as two CSR blocks: the *diagonal* block (columns
+this rank owns, local numbering) and the *off-diagonal* block (other columns, compacted).
+``MatCreateMPIAIJWithSplitArrays`` wraps both blocks around arrays the caller keeps, without
+copying them. :class:`SharedAIJ` builds those blocks once from a list of this rank's entries
+``(row, column)`` in PETSc's global numbering, in the order in which their values arrive, and
+keeps for every block entry the position of its value in that list. New values are then one
+gather per block into PETSc's own storage:
+
+.. math::  a_k = v_{\pi_A(k)}, \qquad b_k = v_{\pi_B(k)},
+
+with no copy of the values on the PETSc side and none of the per-entry maps that
+``MatSetPreallocationCOO`` keeps (two 8-byte integers per entry). The pattern never changes,
+so every product and factorisation built on the matrix keeps its symbolic part.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from meshes.errors import InputError
+from models.backend import PETSc
+
+
+class SharedAIJ:
+    """``MATMPIAIJ`` (``local`` of ``total`` square rows on this rank) over numpy arrays.
+
+    Collective. Ranks own consecutive row ranges in rank order; rank r's rows are given as
+    CSR over global columns, its row ``i`` being the matrix row ``start_r + i``.
+
+    Args:
+        comm: Communicator.
+        local: Rows (and columns) owned by this rank.
+        total: Global size.
+        indptr: (local + 1,) CSR row pointer of this rank's entries.
+        cols: Global column of each entry (any order within a row, no column twice).
+
+    Attributes:
+        mat: The PETSc matrix (symmetric flag set); its values are :meth:`set_values`'s.
+        diagonal: Positions of the diagonal entries in the diagonal block's values.
+
+    """
+
+    def __init__(self, comm: Any, local: int, total: int, indptr: np.ndarray,
+                 cols: np.ndarray) -> None:
+        start = int(comm.exscan(local) or 0) if comm.size > 1 else 0
+        index = np.int32 if max(total, len(cols)) < np.iinfo(np.int32).max else np.int64
+        indptr = np.asarray(indptr).astype(index)
+        if indptr.shape != (local + 1,):
+            raise InputError(f"SharedAIJ: indptr must have {local + 1} entries")
+        cols = np.asarray(cols).astype(index)
+        inside = (cols >= start) & (cols < start + local)
+        # sort every row's entries by a key that puts the diagonal block first
+        key = np.where(inside, cols - start, local + cols).astype(index)
+        order = sp.csr_matrix((np.arange(cols.size, dtype=np.float64), key, indptr),
+                              shape=(local, local + total))
+        order.sort_indices()
+        if np.any((np.diff(order.indices) == 0) & _same_row(order.indptr, cols.size)):
+            raise InputError("SharedAIJ: an entry (row, column) is given twice")
+        rows = np.repeat(np.arange(local, dtype=index), np.diff(indptr))
+        first = order.indices < local
+        self._take = [order.data[first].astype(index), order.data[~first].astype(index)]
+        blocks = []
+        for mask, shift in ((first, 0), (~first, local)):
+            block_ptr = np.zeros(local + 1, dtype=PETSc.IntType)
+            np.cumsum(np.bincount(rows[mask], minlength=local), out=block_ptr[1:])
+            blocks.append((block_ptr, (order.indices[mask] - shift).astype(PETSc.IntType),
+                           np.zeros(int(mask.sum()), dtype=PETSc.ScalarType)))
+        self._blocks = blocks  # PETSc reads these arrays: they live as long as the matrix
+        self.diagonal = np.flatnonzero(rows[first] == blocks[0][1])
+        mat: Any = PETSc.Mat()
+        self.mat = mat.createAIJWithArrays(((local, total), (local, total)),
+                                           (blocks[0], blocks[1]), comm=comm)
+        self.mat.assemble()
+        self.mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+
+    @property
+    def nnz(self) -> int:
+        """Entries on this rank (the length of :meth:`set_values`' input)."""
+        return int(self._take[0].size + self._take[1].size)
+
+    def set_values(self, values: np.ndarray, shift: float = 0.0) -> None:
+        """Take the entries' values (in the constructor's order), plus ``shift`` on the diagonal.
+
+        Collective only through PETSc's object state (bumped so that preconditioners and
+        products see new values).
+        """
+        if values.shape != (self.nnz,):
+            raise InputError(f"SharedAIJ.set_values: expected {self.nnz} values, "
+                             f"got shape {values.shape}")
+        for (_, _, data), take in zip(self._blocks, self._take, strict=True):
+            for lo in range(0, take.size, _CHUNK):  # bounded index casts (int32 -> intp)
+                np.take(values, take[lo: lo + _CHUNK], out=data[lo: lo + _CHUNK])
+        if shift:
+            self._blocks[0][2][self.diagonal] += shift
+        self.mat.stateIncrease()
+
+
+_CHUNK = 1 << 18
+"""Entries gathered per ``np.take`` call in :meth:`SharedAIJ.set_values`."""
+
+
+def _same_row(indptr: np.ndarray, nnz: int) -> np.ndarray:
+    """(nnz - 1,) whether entries k and k + 1 of a CSR matrix lie in the same row."""
+    ends = np.zeros(nnz, dtype=bool)
+    ends[indptr[1:-1][indptr[1:-1] < nnz]] = True
+    return ~ends[1:]
+
+
+__all__ = ["SharedAIJ"]

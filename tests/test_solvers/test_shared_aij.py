@@ -1,0 +1,96 @@
+"""SharedAIJ: a PETSc AIJ matrix over numpy arrays, against scipy on one and two ranks."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from meshes.errors import InputError
+from models.backend import MPI, PETSc
+from solvers.shared_aij import SharedAIJ
+
+CASE = """
+import json, sys
+import numpy as np, scipy.sparse as sp
+from models.backend import MPI
+sys.path.insert(0, "tests/test_solvers")
+from test_shared_aij import product_error
+comm = MPI.COMM_WORLD
+err = comm.allreduce(product_error(comm, 40), op=MPI.MAX)
+if comm.rank == 0:
+    print("RESULT " + json.dumps({"error": err}))
+"""
+
+
+def _rows(n: int, seed: int) -> sp.csr_matrix:
+    """A random n x n matrix with a full diagonal, columns shuffled within every row."""
+    a = sp.random(n, n, density=0.2, random_state=seed, format="csr") + sp.eye(n)
+    a = sp.csr_matrix(a)
+    rng = np.random.default_rng(seed)
+    for i in range(n):  # SharedAIJ takes a row's entries in any order
+        lo, hi = a.indptr[i], a.indptr[i + 1]
+        perm = lo + rng.permutation(hi - lo)
+        a.indices[lo:hi], a.data[lo:hi] = a.indices[perm], a.data[perm]
+    a.has_sorted_indices = False
+    return a
+
+
+def product_error(comm, n: int) -> float:  # noqa: ANN001
+    """Max relative error of ``(A + 0.5 I) v`` on this rank's rows, after two value sets."""
+    a = _rows(n, seed=3)
+    local = n // comm.size + (comm.rank < n % comm.size)
+    start = int(comm.exscan(local) or 0) if comm.size > 1 else 0
+    mine = a[start:start + local]
+    mine.has_sorted_indices = False
+    lo, hi = a.indptr[start], a.indptr[start + local]
+    indptr, cols, values = a.indptr[start:start + local + 1] - lo, a.indices[lo:hi], a.data[lo:hi]
+    shared = SharedAIJ(comm, local, n, indptr, cols)
+    shared.set_values(np.zeros_like(values), 1.0)  # first values, then new ones: state moves
+    x, y = shared.mat.createVecs()
+    v = np.arange(n, dtype=float) + 1.0
+    x.setArray(v[start:start + local])
+    shared.mat.mult(x, y)
+    first = float(np.abs(y.getArray() - v[start:start + local]).max())
+    shared.set_values(values, 0.5)
+    shared.mat.mult(x, y)
+    ref = ((a + 0.5 * sp.eye(n)) @ v)[start:start + local]
+    return max(first, float(np.abs(y.getArray() - ref).max() / np.abs(ref).max()))
+
+
+def test_product_equals_scipy_on_one_rank() -> None:
+    assert product_error(MPI.COMM_SELF, 30) < 1e-14
+
+
+def test_product_equals_scipy_on_two_ranks(mpiexec) -> None:
+    proc = mpiexec(["-c", CASE], n=2, timeout=120, check=True)
+    line = next(s for s in proc.stdout.splitlines() if s.startswith("RESULT "))
+    assert json.loads(line[len("RESULT "):])["error"] < 1e-14
+
+
+def test_diagonal_positions_and_products_keep_their_pattern() -> None:
+    a = _rows(12, seed=5)
+    shared = SharedAIJ(MPI.COMM_SELF, 12, 12, a.indptr, a.indices)
+    assert shared.diagonal.size == 12
+    shared.set_values(a.data)
+    p = PETSc.Mat().createAIJ((12, 4), comm=MPI.COMM_SELF)
+    p.setPreallocationNNZ(1)
+    for i in range(12):
+        p.setValue(i, i // 3, 1.0)
+    p.assemble()
+    coarse = shared.mat.PtAP(p)
+    shared.set_values(2.0 * a.data)  # in place: the reused product must see the new values
+    shared.mat.PtAP(p, result=coarse)
+    ref = sp.csr_matrix((np.ones(12), (np.arange(12), np.arange(12) // 3)), shape=(12, 4))
+    expected = (ref.T @ (2.0 * a) @ ref).toarray()
+    assert np.allclose(coarse.getValues(range(4), range(4)), expected, rtol=1e-14, atol=0)
+
+
+def test_refuses_a_repeated_entry_and_wrong_value_counts() -> None:
+    with pytest.raises(InputError, match="given twice"):
+        SharedAIJ(MPI.COMM_SELF, 2, 2, np.array([0, 2, 3]), np.array([1, 1, 1]))
+    shared = SharedAIJ(MPI.COMM_SELF, 2, 2, np.array([0, 2, 3]), np.array([1, 0, 1]))
+    with pytest.raises(InputError, match="expected 3 values"):
+        shared.set_values(np.ones(2))

@@ -93,15 +93,82 @@ class SharedAIJ:
             raise InputError(f"SharedAIJ.set_values: expected {self.nnz} values, "
                              f"got shape {values.shape}")
         for (_, _, data), take in zip(self._blocks, self._take, strict=True):
-            for lo in range(0, take.size, _CHUNK):  # bounded index casts (int32 -> intp)
-                np.take(values, take[lo: lo + _CHUNK], out=data[lo: lo + _CHUNK])
+            _gather(values, take, data)
         if shift:
             self._blocks[0][2][self.diagonal] += shift
         self.mat.stateIncrease()
 
 
 _CHUNK = 1 << 18
-"""Entries gathered per ``np.take`` call in :meth:`SharedAIJ.set_values`."""
+"""Entries gathered per ``np.take`` call."""
+
+
+def _gather(values: np.ndarray, take: np.ndarray, out: np.ndarray) -> None:
+    """``out = values[take]`` in chunks (bounded index casts, int32 -> intp)."""
+    for lo in range(0, take.size, _CHUNK):
+        np.take(values, take[lo: lo + _CHUNK], out=out[lo: lo + _CHUNK])
+
+
+class BlockUpperCopy:
+    """Upper block triangle (``MATMPISBAIJ``, 3 x 3 blocks) of a symmetric matrix's rows.
+
+    The same rows as :class:`SharedAIJ` (rank r's rows from ``start_r``, CSR over global
+    columns), which must consist of full 3 x 3 vertex blocks with every vertex's dofs
+    consecutive. Only the blocks on or above the block diagonal are kept: a product reads
+    about half the bytes of the full AIJ rows (8 bytes per kept entry and one index per
+    block instead of 12 bytes per entry), which is what bounds it. Values are gathered
+    from the rows' values and inserted into the fixed pattern (``MatSetValuesBlocked``).
+
+    Args:
+        comm: Communicator.
+        local: Rows owned by this rank (a multiple of 3).
+        total: Global size.
+        indptr: (local + 1,) CSR row pointer of this rank's entries.
+        cols: Global column of each entry.
+
+    Attributes:
+        mat: The PETSc ``MATMPISBAIJ`` (block size 3).
+
+    """
+
+    def __init__(self, comm: Any, local: int, total: int, indptr: np.ndarray,
+                 cols: np.ndarray) -> None:
+        bs = 3
+        start = int(comm.exscan(local) or 0) if comm.size > 1 else 0
+        if local % bs or start % bs or total % bs:
+            raise InputError("BlockUpperCopy: row ranges must hold whole 3 x 3 blocks")
+        positions = sp.csr_matrix((np.arange(1.0, len(cols) + 1.0), np.asarray(cols),
+                                   np.asarray(indptr)), shape=(local, total))
+        bsr = positions.tobsr(blocksize=(bs, bs))
+        bsr.sort_indices()
+        block_row = np.repeat(np.arange(local // bs), np.diff(bsr.indptr))
+        keep = bsr.indices >= block_row + start // bs
+        blocks = bsr.data[keep]
+        if np.any(blocks == 0):
+            raise InputError("BlockUpperCopy: the rows must consist of full 3 x 3 blocks")
+        index = np.int32 if len(cols) < np.iinfo(np.int32).max else np.int64
+        self._take = (blocks.reshape(-1) - 1).astype(index)
+        self._ptr = np.zeros(local // bs + 1, dtype=PETSc.IntType)
+        np.cumsum(np.bincount(block_row[keep], minlength=local // bs), out=self._ptr[1:])
+        self._ind = bsr.indices[keep].astype(PETSc.IntType)
+        self._data = np.zeros(self._take.size, dtype=PETSc.ScalarType)
+        on_diagonal = np.repeat(self._ind == block_row[keep] + start // bs, bs * bs)
+        self._diagonal = np.flatnonzero(on_diagonal & np.tile(np.eye(bs, dtype=bool).ravel(),
+                                                              self._ind.size))
+        mat: Any = PETSc.Mat()
+        self.mat = mat.createSBAIJ(((local, total), (local, total)), bs,
+                                   csr=(self._ptr, self._ind), comm=comm)
+
+    def set_values(self, values: np.ndarray, shift: float = 0.0) -> None:
+        """Take the rows' values (the constructor's entry order), ``shift`` on the diagonal.
+
+        Collective (the matrix is assembled).
+        """
+        _gather(values, self._take, self._data)
+        if shift:
+            self._data[self._diagonal] += shift
+        self.mat.setValuesBlockedCSR(self._ptr, self._ind, self._data)
+        self.mat.assemble()
 
 
 def _same_row(indptr: np.ndarray, nnz: int) -> np.ndarray:
@@ -111,4 +178,4 @@ def _same_row(indptr: np.ndarray, nnz: int) -> np.ndarray:
     return ~ends[1:]
 
 
-__all__ = ["SharedAIJ"]
+__all__ = ["BlockUpperCopy", "SharedAIJ"]

@@ -59,7 +59,7 @@ from solvers.multigrid import (
     penalty_levels,
 )
 from solvers.phase_space import deflated_cg, hat_matrix
-from solvers.shared_aij import SharedAIJ
+from solvers.shared_aij import BlockUpperCopy, SharedAIJ
 
 
 def level_owners(fine_owner: np.ndarray, prolongations: tuple[sp.csr_matrix, ...]
@@ -179,7 +179,7 @@ class SplitMultigridSystem(KrylovBase):
                        for i, p in enumerate(prolongations)]
         self._penalty, self._coarse_penalty = self._penalty_levels(g, prolongations,
                                                                    cluster_rank)
-        self._fine = self._fine_matrix()
+        self._fine, self._fine_products = self._fine_matrices()
         self._galerkin: list[Any] = []
         self._coarse: Any = None
         self._ksp: Any = None
@@ -239,20 +239,22 @@ class SplitMultigridSystem(KrylovBase):
 
     # ----------------------------------------------------------------------------- set-up
 
-    def _fine_matrix(self) -> SharedAIJ:
-        """Build the owned Hessian rows' pattern as a :class:`SharedAIJ` (PETSc columns).
+    def _fine_matrices(self) -> tuple[SharedAIJ, BlockUpperCopy]:
+        """Build the owned Hessian rows' patterns (columns mapped to PETSc).
 
-        Built with the solver, before any frame: its set-up arrays are gone before the
+        A :class:`SharedAIJ` for the Galerkin and phase-space products, and its upper block
+        triangle (:class:`BlockUpperCopy`) for the fine level's CG and smoother products.
+        Built with the solver, before any frame: their set-up arrays are gone before the
         evaluations and products of a Newton step need memory.
         """
         patch, fine = self.energy.patch, self.levels[-1]
         indptr, indices = self.energy.hessian_rows_pattern()
         col_dofs = fine.dof[(3 * patch.local[:, None] + np.arange(3)).reshape(-1)]
-        matrix = SharedAIJ(self.comm, fine.local_size, fine.size, indptr,
-                           col_dofs.astype(PETSc.IntType)[indices])
+        cols = col_dofs.astype(PETSc.IntType)[indices]
+        matrix = SharedAIJ(self.comm, fine.local_size, fine.size, indptr, cols)
         if matrix.diagonal.size != fine.local_size:
             raise InputError("SplitMultigridSystem: the Hessian rows must contain the diagonal")
-        return matrix
+        return matrix, BlockUpperCopy(self.comm, fine.local_size, fine.size, indptr, cols)
 
     def factorize(self, ev: Any, tau: float) -> FactorReport:
         """Set the preconditioner up for ``ev.hess + tau I (+ G^T G)`` (collective)."""
@@ -262,6 +264,7 @@ class SplitMultigridSystem(KrylovBase):
             raise InputError("SplitMultigridSystem.factorize: expected the split energy's "
                              "owned Hessian rows")
         self._fine.set_values(rows.data, tau)
+        self._fine_products.set_values(rows.data, tau)
         same_matrix = self._current is not None and self._current[0] is ev
         self._current = (ev, float(tau))
         phase = self._update_phase(tau, same_matrix)
@@ -326,7 +329,9 @@ class SplitMultigridSystem(KrylovBase):
     def _level_operator(self, level: int) -> Any:
         """Level ``level`` (>= 1) as a ``MatPython``: ``A_l + G_l^T G_l``."""
         numbering, penalty = self.levels[level], self._penalty[level]
-        context = LowRankOperator.of_petsc(self._galerkin[level], *(penalty or (None, 0.0)))
+        fine = level == len(self.levels) - 1  # its products read the upper block triangle
+        a = self._fine_products.mat if fine else self._galerkin[level]
+        context = LowRankOperator.of_petsc(a, *(penalty or (None, 0.0)))
         sizes = (numbering.local_size, numbering.size)
         mat: Any = PETSc.Mat().createPython((sizes, sizes), context, comm=self.comm)
         mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)

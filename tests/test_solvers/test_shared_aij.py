@@ -1,4 +1,4 @@
-"""SharedAIJ: a PETSc AIJ matrix over numpy arrays, against scipy on one and two ranks."""
+"""SharedAIJ and BlockUpperCopy: PETSc matrices filled by a gather, against scipy (1, 2 ranks)."""
 
 from __future__ import annotations
 
@@ -10,16 +10,16 @@ import scipy.sparse as sp
 
 from meshes.errors import InputError
 from models.backend import MPI, PETSc
-from solvers.shared_aij import SharedAIJ
+from solvers.shared_aij import BlockUpperCopy, SharedAIJ
 
 CASE = """
 import json, sys
 import numpy as np, scipy.sparse as sp
 from models.backend import MPI
 sys.path.insert(0, "tests/test_solvers")
-from test_shared_aij import product_error
+from test_shared_aij import block_product_error, product_error
 comm = MPI.COMM_WORLD
-err = comm.allreduce(product_error(comm, 40), op=MPI.MAX)
+err = comm.allreduce(max(product_error(comm, 40), block_product_error(comm, 14)), op=MPI.MAX)
 if comm.rank == 0:
     print("RESULT " + json.dumps({"error": err}))
 """
@@ -60,8 +60,39 @@ def product_error(comm, n: int) -> float:  # noqa: ANN001
     return max(first, float(np.abs(y.getArray() - ref).max() / np.abs(ref).max()))
 
 
+def block_product_error(comm, vertices: int) -> float:  # noqa: ANN001
+    """Max relative error of ``(A + 0.5 I) v`` with A symmetric of full 3 x 3 blocks.
+
+    The rows go in as a :class:`BlockUpperCopy` (vertices split over the ranks).
+    """
+    pattern = sp.random(vertices, vertices, density=0.3, random_state=4) + sp.eye(vertices)
+    half = sp.kron(pattern, np.random.default_rng(5).standard_normal((3, 3)))
+    a = sp.csr_matrix(half + half.T)
+    n = 3 * vertices
+    mine = vertices // comm.size + (comm.rank < vertices % comm.size)
+    start = 3 * (int(comm.exscan(mine) or 0) if comm.size > 1 else 0)
+    local = 3 * mine
+    lo, hi = a.indptr[start], a.indptr[start + local]
+    copy = BlockUpperCopy(comm, local, n, a.indptr[start:start + local + 1] - lo,
+                          a.indices[lo:hi])
+    copy.set_values(a.data[lo:hi], 0.5)
+    x, y = copy.mat.createVecs()
+    v = np.sin(np.arange(n, dtype=float))
+    x.setArray(v[start:start + local])
+    copy.mat.mult(x, y)
+    ref = ((a + 0.5 * sp.eye(n)) @ v)[start:start + local]
+    return float(np.abs(y.getArray() - ref).max() / np.abs(ref).max())
+
+
 def test_product_equals_scipy_on_one_rank() -> None:
     assert product_error(MPI.COMM_SELF, 30) < 1e-14
+    assert block_product_error(MPI.COMM_SELF, 10) < 1e-14
+
+
+def test_block_copy_refuses_rows_without_full_blocks() -> None:
+    rows = sp.csr_matrix(sp.eye(6))  # 3 x 3 diagonal blocks with off-diagonal holes
+    with pytest.raises(InputError, match="full 3 x 3 blocks"):
+        BlockUpperCopy(MPI.COMM_SELF, 6, 6, rows.indptr, rows.indices)
 
 
 def test_product_equals_scipy_on_two_ranks(mpiexec) -> None:

@@ -10,10 +10,13 @@ its own vertices on every level and PETSc does the products and the messages.
   at the same place), so a prolongation row and most of its columns live on one rank.
   PETSc numbers each level rank by rank (dof ``3 v + k`` of rank r's ``i``-th vertex is
   ``offset_r + 3 i + k``).
-* Fine level: ``A + tau I`` as a ``MATMPIAIJ`` from the split energy's owned Hessian rows
-  (pattern set once by ``MatSetPreallocationCOO``). Prolongations ``P_l = S_l (x) I_3``
-  as ``MATMPIAIJ``; Galerkin levels ``A_l = P_l^T A_{l+1} P_l`` by the parallel
-  ``MatPtAP`` (symbolic product reused).
+* Fine level: ``A + tau I`` from the split energy's owned Hessian rows, twice: a
+  ``MATMPIAIJ`` over numpy arrays (:class:`solvers.shared_aij.SharedAIJ`) for the Galerkin
+  and phase-space products, and its upper block triangle (``MATMPISBAIJ``, 3 x 3 blocks,
+  :class:`solvers.shared_aij.BlockUpperCopy`) for the CG and smoother products, which read
+  about half the bytes (the serial solver's SBAIJ level copy). Prolongations
+  ``P_l = S_l (x) I_3`` as ``MATMPIAIJ``; Galerkin levels ``A_l = P_l^T A_{l+1} P_l`` by the
+  parallel ``MatPtAP`` (symbolic product reused).
 * Penalty: as in the serial solver, ``G^T G`` (``G = sqrt(2 k_P) H (x) I_3``) is never
   assembled on the fine levels: level ``l`` applies ``A_l + G_l^T G_l`` matrix-free
   (``G_l = G_{l+1} P_l``, rows owned by the cluster's owner), Jacobi reads
@@ -31,9 +34,8 @@ its own vertices on every level and PETSc does the products and the messages.
   CG (A-DEF2 around the V-cycle, from ``x_0 = Q b``), as in the serial solver; an indefinite
   ``Z^T A Z`` ends the set-up with a failed report (the Newton moves to its next shift).
 
-The PCMG set-up, the Galerkin levels and the deflated CG are the serial solver's own
-functions; its SBAIJ level copies, threads and direct fallback have no distributed form here.
-With one rank the product keeps the serial solver.
+The PCMG set-up, Galerkin levels and deflated CG are the serial solver's own functions; its
+coarse SBAIJ copies, threads and direct fallback have no distributed form (one rank: serial).
 """
 
 from __future__ import annotations

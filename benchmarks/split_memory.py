@@ -28,27 +28,17 @@ from __future__ import annotations
 import argparse
 import ctypes
 import json
-import os
 import resource
-import subprocess
-import sys
-import tempfile
 from pathlib import Path
 from typing import Any
+
+from benchmarks.shell_solve import proc_status_mib
+from benchmarks.split_scaling import run_worker
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "split_memory.json"
 SCENE = REPO / "scenes" / "default.toml"
 MB = 2.0**20
-
-
-def _rss_mb() -> float:
-    """Current resident set of this process [MB]."""
-    with open("/proc/self/status") as status:
-        for line in status:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    return 0.0
 
 
 def _petsc_peak_mb() -> float:
@@ -74,11 +64,11 @@ def worker(levels: int, out: Path) -> None:
     build = runner.build_shell
 
     def measured_build(*args: Any, **kwargs: Any) -> Any:
-        marks["rss_before_shell"] = _rss_mb()
+        marks["rss_before_shell"] = proc_status_mib("VmRSS")
         tracemalloc.start()
         return build(*args, **kwargs)
 
-    runner.build_shell = measured_build  # type: ignore[assignment]
+    runner.build_shell = measured_build
     scene = load_scene(SCENE, [f"shell.subdivision.levels={levels}", "output.render=false",
                                "output.xdmf=false", "time.frames=1", "shell.solver.threads=1"])
     run = runner.prepare(scene, out / "run", comm, overwrite=True, log=lambda line: None)
@@ -92,24 +82,6 @@ def worker(levels: int, out: Path) -> None:
         assert run.shell is not None  # the default scene has a shell
         doc = {"ranks": comm.size, "vertices": int(run.shell.rest.shape[0]), "per_rank": ranks}
         (out / "record.json").write_text(json.dumps(doc))
-
-
-def measure(levels: int, ranks: int, timeout: float) -> dict[str, Any]:
-    """Run :func:`worker` under ``mpiexec -n ranks`` with PETSc's allocation log on."""
-    mpiexec = Path(sys.executable).with_name("mpiexec")
-    with tempfile.TemporaryDirectory(prefix="split_memory_") as tmp:
-        cmd = [sys.executable, __file__, "--worker", "--levels", str(levels), "--out", tmp]
-        if ranks > 1:
-            cmd = [str(mpiexec), "-n", str(ranks), *cmd]
-        # the log's report at exit goes to a file (threshold: none of it is needed)
-        petsc = f"-malloc_view {tmp}/malloc_view -malloc_view_threshold 1e15"
-        env = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", **os.environ,
-               "PETSC_OPTIONS": f"{os.environ.get('PETSC_OPTIONS', '')} {petsc}".strip()}
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout,
-                              cwd=REPO, env=env)
-        if proc.returncode != 0:
-            raise SystemExit(f"split_memory: {ranks} rank(s) failed:\n{proc.stderr[-3000:]}")
-        return json.loads((Path(tmp) / "record.json").read_text())
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -126,7 +98,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         return {}
     if 1 not in args.ranks:
         raise SystemExit("split_memory: --ranks needs 1 (the serial reference)")
-    runs = [measure(args.levels, r, args.timeout) for r in sorted(set(args.ranks))]
+    # PETSc's allocation log on (its report at exit goes to a file, none of it needed)
+    log = "-malloc_view {out}/malloc_view -malloc_view_threshold 1e15"
+    runs = [run_worker(__file__, args.levels, r, args.timeout, log)
+            for r in sorted(set(args.ranks))]
     keys = ("rss_before_shell", "rss_peak", "shell_peak", "python_peak", "petsc_peak")
     serial = runs[0]["per_rank"][0]
     print(f"{'ranks':>5} {'vertices':>9} {'rank':>4} " + " ".join(f"{k:>16}" for k in keys)

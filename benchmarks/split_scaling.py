@@ -106,20 +106,29 @@ def worker(levels: int, out: Path) -> None:
         (out / "record.json").write_text(json.dumps(doc))
 
 
-def measure(levels: int, ranks: int, timeout: float) -> dict[str, Any]:
-    """Run :func:`worker` under ``mpiexec -n ranks``; its record."""
+def run_worker(script: str, levels: int, ranks: int, timeout: float,
+               petsc_options: str = "") -> dict[str, Any]:
+    """Run ``script --worker --levels L --out DIR`` under ``mpiexec -n ranks``; its record.
+
+    The worker writes ``DIR/record.json`` on rank 0. ``petsc_options`` are added to
+    ``PETSC_OPTIONS`` (``{out}`` in them names the run's temporary directory).
+    """
     mpiexec = Path(sys.executable).with_name("mpiexec")
-    with tempfile.TemporaryDirectory(prefix="split_scaling_") as tmp:
-        cmd = [sys.executable, __file__, "--worker", "--levels", str(levels), "--out", tmp]
+    name = Path(script).stem
+    with tempfile.TemporaryDirectory(prefix=f"{name}_") as tmp:
+        cmd = [sys.executable, script, "--worker", "--levels", str(levels), "--out", tmp]
         if ranks > 1:
             cmd = [str(mpiexec), "-n", str(ranks), *cmd]
         # one BLAS thread per process, as the CLI has (wrinkles/__init__.py): this script
         # loads numpy before the package could cap it
         env = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", **os.environ}
+        if petsc_options:
+            extra = petsc_options.format(out=tmp)
+            env["PETSC_OPTIONS"] = f"{env.get('PETSC_OPTIONS', '')} {extra}".strip()
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout,
                               cwd=REPO, env=env)
         if proc.returncode != 0:
-            raise SystemExit(f"split_scaling: {ranks} rank(s) failed:\n{proc.stderr[-3000:]}")
+            raise SystemExit(f"{name}: {ranks} rank(s) failed:\n{proc.stderr[-3000:]}")
         return json.loads((Path(tmp) / "record.json").read_text())
 
 
@@ -180,7 +189,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if 1 not in args.ranks or not any(r > 1 for r in args.ranks):
         raise SystemExit("split_scaling: --ranks needs 1 and at least one count above 1")
     cores = os.cpu_count() or 1
-    runs = [measure(args.levels, r, args.timeout) for r in sorted(set(args.ranks))]
+    runs = [run_worker(__file__, args.levels, r, args.timeout)
+            for r in sorted(set(args.ranks))]
     print(f"{'ranks':>5} {'vertices':>9} {'newton':>6} {'shell s':>8} {'eval':>6} "
           f"{'setup':>6} {'CG':>6} {'owned max':>9} {'halo max':>8} {'products':>8} "
           f"{'CG its':>6}")

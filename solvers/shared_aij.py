@@ -86,8 +86,8 @@ class SharedAIJ:
     def set_values(self, values: np.ndarray, shift: float = 0.0) -> None:
         """Take the entries' values (in the constructor's order), plus ``shift`` on the diagonal.
 
-        Collective only through PETSc's object state (bumped so that preconditioners and
-        products see new values).
+        Not collective: the values are written in place and PETSc's object state is bumped,
+        so that preconditioners and products built on the matrix see them.
         """
         if values.shape != (self.nnz,):
             raise InputError(f"SharedAIJ.set_values: expected {self.nnz} values, "

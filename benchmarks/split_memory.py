@@ -25,7 +25,6 @@ ratio of every rank count's largest shell peak to the 1-rank one.
 
 from __future__ import annotations
 
-import argparse
 import ctypes
 import json
 import resource
@@ -33,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.shell_solve import proc_status_mib
-from benchmarks.split_scaling import run_worker
+from benchmarks.split_scaling import run_worker, worker_parser
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "split_memory.json"
@@ -86,13 +85,7 @@ def worker(levels: int, out: Path) -> None:
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """Measure every rank count; print the table; write the JSON."""
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--levels", type=int, default=4)
-    p.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
-    p.add_argument("--timeout", type=float, default=3600.0)
-    p.add_argument("--out", type=Path, default=RESULTS)
-    p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
-    args = p.parse_args(argv)
+    args = worker_parser(__doc__, RESULTS).parse_args(argv)
     if args.worker:
         worker(args.levels, args.out)
         return {}

@@ -106,6 +106,17 @@ def worker(levels: int, out: Path) -> None:
         (out / "record.json").write_text(json.dumps(doc))
 
 
+def worker_parser(doc: str, results: Path) -> argparse.ArgumentParser:
+    """Arguments of a benchmark measured by :func:`run_worker`: levels, ranks, out, worker."""
+    p = argparse.ArgumentParser(description=doc.splitlines()[0])
+    p.add_argument("--levels", type=int, default=4)
+    p.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
+    p.add_argument("--timeout", type=float, default=3600.0)
+    p.add_argument("--out", type=Path, default=results)
+    p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    return p
+
+
 def run_worker(script: str, levels: int, ranks: int, timeout: float,
                petsc_options: str = "") -> dict[str, Any]:
     """Run ``script --worker --levels L --out DIR`` under ``mpiexec -n ranks``; its record.
@@ -173,15 +184,10 @@ def counts_of(run: dict[str, Any]) -> dict[str, float]:
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """Measure, fit, predict; print both tables; write the JSON."""
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--levels", type=int, default=4)
-    p.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
+    p = worker_parser(__doc__, RESULTS)
     p.add_argument("--alpha", type=float, default=2e-6, help="network latency [s]")
     p.add_argument("--beta", type=float, default=10e9, help="network bandwidth [B/s]")
     p.add_argument("--predict-vertices", type=int, default=1_000_000)
-    p.add_argument("--timeout", type=float, default=3600.0)
-    p.add_argument("--out", type=Path, default=RESULTS)
-    p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.worker:
         worker(args.levels, args.out)

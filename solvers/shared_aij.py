@@ -26,6 +26,16 @@ from meshes.errors import InputError
 from models.backend import PETSc
 
 
+def _row_start(comm: Any, local: int) -> int:
+    """First global row of this rank (ranks own consecutive ranges in rank order)."""
+    return int(comm.exscan(local) or 0) if comm.size > 1 else 0
+
+
+def _index_type(n: int) -> type:
+    """int32 for indices and positions below 2^31, else int64."""
+    return np.int32 if n < np.iinfo(np.int32).max else np.int64
+
+
 class SharedAIJ:
     """``MATMPIAIJ`` (``local`` of ``total`` square rows on this rank) over numpy arrays.
 
@@ -47,21 +57,21 @@ class SharedAIJ:
 
     def __init__(self, comm: Any, local: int, total: int, indptr: np.ndarray,
                  cols: np.ndarray) -> None:
-        start = int(comm.exscan(local) or 0) if comm.size > 1 else 0
-        index = np.int32 if max(total, len(cols)) < np.iinfo(np.int32).max else np.int64
+        start = _row_start(comm, local)
+        index = _index_type(max(total, len(cols)))
         indptr = np.asarray(indptr).astype(index)
         if indptr.shape != (local + 1,):
             raise InputError(f"SharedAIJ: indptr must have {local + 1} entries")
         cols = np.asarray(cols).astype(index)
         inside = (cols >= start) & (cols < start + local)
         # sort every row's entries by a key that puts the diagonal block first
-        key = np.where(inside, cols - start, local + cols).astype(index)
+        key: np.ndarray = np.where(inside, cols - start, local + cols).astype(index)
         order = sp.csr_matrix((np.arange(cols.size, dtype=np.float64), key, indptr),
                               shape=(local, local + total))
         order.sort_indices()
-        if np.any((np.diff(order.indices) == 0) & _same_row(order.indptr, cols.size)):
+        if not order.has_canonical_format:  # sorted rows with a column twice
             raise InputError("SharedAIJ: an entry (row, column) is given twice")
-        rows = np.repeat(np.arange(local, dtype=index), np.diff(indptr))
+        rows: np.ndarray = np.repeat(np.arange(local, dtype=index), np.diff(indptr))
         first = order.indices < local
         self._take = [order.data[first].astype(index), order.data[~first].astype(index)]
         blocks = []
@@ -134,7 +144,7 @@ class BlockUpperCopy:
     def __init__(self, comm: Any, local: int, total: int, indptr: np.ndarray,
                  cols: np.ndarray) -> None:
         bs = 3
-        start = int(comm.exscan(local) or 0) if comm.size > 1 else 0
+        start = _row_start(comm, local)
         if local % bs or start % bs or total % bs:
             raise InputError("BlockUpperCopy: row ranges must hold whole 3 x 3 blocks")
         positions = sp.csr_matrix((np.arange(1.0, len(cols) + 1.0), np.asarray(cols),
@@ -146,8 +156,7 @@ class BlockUpperCopy:
         blocks = bsr.data[keep]
         if np.any(blocks == 0):
             raise InputError("BlockUpperCopy: the rows must consist of full 3 x 3 blocks")
-        index = np.int32 if len(cols) < np.iinfo(np.int32).max else np.int64
-        self._take = (blocks.reshape(-1) - 1).astype(index)
+        self._take = (blocks.reshape(-1) - 1).astype(_index_type(len(cols)))
         self._ptr = np.zeros(local // bs + 1, dtype=PETSc.IntType)
         np.cumsum(np.bincount(block_row[keep], minlength=local // bs), out=self._ptr[1:])
         self._ind = bsr.indices[keep].astype(PETSc.IntType)
@@ -169,13 +178,6 @@ class BlockUpperCopy:
             self._data[self._diagonal] += shift
         self.mat.setValuesBlockedCSR(self._ptr, self._ind, self._data)
         self.mat.assemble()
-
-
-def _same_row(indptr: np.ndarray, nnz: int) -> np.ndarray:
-    """(nnz - 1,) whether entries k and k + 1 of a CSR matrix lie in the same row."""
-    ends = np.zeros(nnz, dtype=bool)
-    ends[indptr[1:-1][indptr[1:-1] < nnz]] = True
-    return ~ends[1:]
 
 
 __all__ = ["BlockUpperCopy", "SharedAIJ"]

@@ -43,8 +43,6 @@ def product_error(comm, n: int) -> float:  # noqa: ANN001
     a = _rows(n, seed=3)
     local = n // comm.size + (comm.rank < n % comm.size)
     start = int(comm.exscan(local) or 0) if comm.size > 1 else 0
-    mine = a[start:start + local]
-    mine.has_sorted_indices = False
     lo, hi = a.indptr[start], a.indptr[start + local]
     indptr, cols, values = a.indptr[start:start + local + 1] - lo, a.indices[lo:hi], a.data[lo:hi]
     shared = SharedAIJ(comm, local, n, indptr, cols)

@@ -23,11 +23,13 @@ and their rows and columns are the identity. The flip barrier's reference normal
 (:meth:`models.shell.energy.ShellEnergy.set_target`), so ``E`` is a function of ``(x, u)``.
 
 :class:`CoupledEnergy` is that energy in the interface of the shell's Newton solver, which
-minimises it (:mod:`solvers.shell_newton`: shifted factorisations of the joint matrix with
-inertia checks, Armijo line search on ``E``, which is ``+inf`` where ``det F <= 0`` or a
-face turns over). Under MPI the body's gradient and Hessian are gathered on every rank and the
-joint system is solved redundantly, like the one-way shell; the scalars every rank decides on
-(``Pi``) are rank 0's, so all ranks take the same steps.
+minimises it (:mod:`solvers.shell_newton`: shifted Newton matrices, Armijo line search on
+``E``, which is ``+inf`` where ``det F <= 0`` or a face turns over). The joint system is
+solved like the shell's own, by the method its size chose: factorised (MUMPS LDL^T with
+inertia checks, :data:`JOINT_LINEAR`) or by CG with the shell's multigrid on the shell block
+and the body block factorised (:mod:`solvers.joint_krylov`). Under MPI the body's gradient
+and Hessian are gathered on every rank and the joint system is solved redundantly; the
+scalars every rank decides on (``Pi``) are rank 0's, so all ranks take the same steps.
 """
 
 from __future__ import annotations
@@ -156,12 +158,18 @@ class PatternSum:
 
 @dataclass(eq=False)
 class CoupledEval:
-    """Value, gradient, Hessian and penalty factor of :class:`CoupledEnergy` (order 0-2)."""
+    """Value, gradient, Hessian and penalty factor of :class:`CoupledEnergy` (order 0-2).
+
+    ``blocks`` (order 2) are the Hessian's diagonal blocks ``(K_x, K_u)`` without the
+    coupled penalty (``hess`` is their sum in one pattern, plus the assembled coupling when
+    the penalty is not a factor).
+    """
 
     value: float
     grad: np.ndarray | None
     hess: sp.csr_matrix | None
     penalty_factor: sp.csr_matrix | None
+    blocks: tuple[sp.csr_matrix, sp.csr_matrix] | None = None
 
 
 class CoupledEnergy:
@@ -172,6 +180,10 @@ class CoupledEnergy:
         rest: ``X_T`` (n, 3), the shell's rest positions (``B X_q``).
         B: (n, n_b) embedding matrix, columns in the body's global node order.
         body: the body's step problem on every rank.
+
+    Attributes:
+        factor: ``F = [G, -G B]`` (pinned body columns zero), None without the factor G.
+        body_factor: ``F``'s body columns ``-G B`` (the joint CG's body block), or None.
 
     """
 
@@ -187,6 +199,7 @@ class CoupledEnergy:
         free[body.fixed] = 0.0
         Bk_free = (Bk @ sp.diags(free)).tocsr()
         self.factor = self._coupled_factor(Bk_free)
+        self.body_factor = None if self.factor is None else self.factor[:, 3 * self.n:].tocsr()
         self.constant = self._coupling_blocks(Bk_free) if self.factor is None else None
         self._sum: PatternSum | None = None
 
@@ -245,8 +258,9 @@ class CoupledEnergy:
         if order == 1:
             return CoupledEval(value, grad, None, None)
         assert ev.hess is not None  # order 2
-        return CoupledEval(value, grad, self._hessian(ev.hess, self.body.hessian()),
-                           self.factor)
+        k_u = self.body.hessian()
+        return CoupledEval(value, grad, self._hessian(ev.hess, k_u), self.factor,
+                           (ev.hess, k_u))
 
     def _hessian(self, K_x: sp.csr_matrix, K_u: sp.csr_matrix) -> sp.csr_matrix:
         """Return the joint Hessian in its fixed union pattern."""

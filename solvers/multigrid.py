@@ -727,7 +727,7 @@ class KrylovBase:
         try:
             x = self._accepted_cg(rhs)
             if x is None and self._bounds_stale and self.options.eigen_estimate == "solve":
-                self._estimate()
+                self.renew_bounds()
                 x = self._accepted_cg(rhs)
             return x if x is not None else self._failed(rhs)
         finally:
@@ -742,7 +742,7 @@ class KrylovBase:
         """Return the direction when CG failed (subclass: a fallback solve, or NaN)."""
         raise NotImplementedError
 
-    def _estimate(self) -> None:
+    def renew_bounds(self) -> None:
         """Make the Chebyshev smoothers re-estimate their bounds at the next solve."""
         for op in self._operators:
             op.stateIncrease()
@@ -922,7 +922,7 @@ class MultigridLinearSystem(KrylovBase):
         for jacobi in self._jacobi:
             jacobi.refresh()
         if self._estimate_due:
-            self._estimate()
+            self.renew_bounds()
             self._estimate_due = self.options.eigen_estimate == "setup"
 
     def _refresh_products(self) -> None:
@@ -967,6 +967,21 @@ class MultigridLinearSystem(KrylovBase):
         return ksp
 
     # ----------------------------------------------------------------------------- solve
+
+    def precondition(self, r: np.ndarray) -> np.ndarray:
+        """Return one V-cycle (the PCMG preconditioner, from zero) applied to ``r``.
+
+        The cycle is symmetric (Chebyshev smoothing before and after, the coarsest level
+        solved exactly), so it can precondition an outer CG (:mod:`solvers.joint_krylov`).
+        """
+        assert self._ksp is not None  # factorize() set it up (internal invariant)
+        b, x = self._operators[-1].createVecs()
+        b.setArray(np.ascontiguousarray(r, dtype=np.float64))
+        self._ksp.getPC().apply(b, x)
+        out = x.getArray().copy()
+        for vec in (b, x):
+            vec.destroy()
+        return out
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """Return ``(A + tau I + G^T G) x`` of the current system (scipy; true residuals)."""

@@ -517,17 +517,23 @@ class ShellNewtonSolver:
         options: Solver options.
         hierarchy: The subdivision hierarchy the shell was built by (needed by
             ``linear_method = "multigrid"``; its finest level must be the shell).
+        krylov: A CG solver of the Newton system to use instead of the one
+            ``linear_method`` names (the joint body-shell system of the two-way coupling,
+            :class:`solvers.joint_krylov.JointKrylovSystem`).
 
     """
 
     def __init__(self, energy: ShellEnergyLike, options: ShellNewtonOptions | None = None,
-                 hierarchy: ShellHierarchy | None = None) -> None:
+                 hierarchy: ShellHierarchy | None = None,
+                 krylov: KrylovSystem | None = None) -> None:
         self.energy = energy
         self.options = options or ShellNewtonOptions()
         self.direct = _LinearSystem(self.options)
         self.linear: NewtonSystem = self.direct
-        self.krylov: KrylovSystem | None = None
-        if self.options.linear_method == "multigrid":
+        self.krylov: KrylovSystem | None = krylov
+        if krylov is not None:
+            self.linear = krylov
+        elif self.options.linear_method == "multigrid":
             if hierarchy is None:
                 raise InputError("ShellNewtonOptions.linear_method: 'multigrid' needs the "
                                  "subdivision hierarchy (ShellNewtonSolver(..., hierarchy=))")

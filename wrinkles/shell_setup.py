@@ -385,6 +385,7 @@ class Shell:
             :func:`penalty_coupling`).
         start_repaired: vertices the last warm start pulled towards the target because a
             face was turned over against the target's normals (:func:`admissible_start`).
+        hierarchy: the subdivision hierarchy the shell was built by (the multigrid's levels).
 
     """
 
@@ -404,6 +405,7 @@ class Shell:
     force: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     coupling: PenaltyCoupling | None = None
     start_repaired: int = 0
+    hierarchy: ShellHierarchy | None = None
 
     def __post_init__(self) -> None:
         if self.force.shape != self.rest.shape:
@@ -587,8 +589,8 @@ def build_shell(body: Body, options: ShellOptions, material: Material,
         raise InputError(f"{source}: its surface makes a shell the solver cannot use ({exc}); "
                          f"remesh the body (mesh.file) or refine it (mesh.params.h)") from None
     energy = ShellEnergy(topology, rest_state, params, clusters.H)
-    solver = shell_solver(energy, options.internals.newton, ShellHierarchy(sub), clusters,
-                          body.mesh.comm)
+    hierarchy = ShellHierarchy(sub)
+    solver = shell_solver(energy, options.internals.newton, hierarchy, clusters, body.mesh.comm)
     split = f" split over {body.mesh.comm.size} ranks" if body.mesh.comm.size > 1 else ""
     log(f"shell: energy and solver ({options.solver.method}, {options.solver.threads} "
         f"thread(s){split})")
@@ -602,7 +604,8 @@ def build_shell(body: Body, options: ShellOptions, material: Material,
              "embedding": dataclasses.asdict(emb.report),
              "setup_time": time.perf_counter() - t0}
     return Shell(options, topology, rest, emb, clusters, energy, solver, rest.copy(),
-                 rest.copy(), vertex_normals(rest, sub.faces), a, facts=facts)
+                 rest.copy(), vertex_normals(rest, sub.faces), a, facts=facts,
+                 hierarchy=hierarchy)
 
 
 __all__ = ["Shell", "ShellOptions", "SkinOptions", "build_shell", "cluster_options",

@@ -25,7 +25,9 @@ from models.coupling import PenaltyCoupling, body_force_function, penalty_force
 from solvers.body import Body
 from solvers.body_newton import EnergyNewton, NewtonResult
 from solvers.coupling import coupled_frame
+from solvers.joint_krylov import JointKrylovSystem
 from solvers.monolithic import JOINT_LINEAR, BodyUnknowns, CoupledEnergy
+from solvers.multigrid import MultigridLinearSystem
 from solvers.shell_newton import (
     ModifiedNewtonOptions,
     ShellNewtonSolver,
@@ -52,7 +54,8 @@ class CoupledStep:
     the body's guess (``x_prev + (y(u_0) - y_prev)``, the frame's imperfection on the first
     call of a frame, :func:`wrinkles.shell_stage.warm_start`), then the shell's Newton
     solver minimises :class:`solvers.monolithic.CoupledEnergy` over shell and body at once
-    (direct linear solves, :data:`solvers.monolithic.JOINT_LINEAR`). Only a converged solve
+    (the joint system factorised, :data:`solvers.monolithic.JOINT_LINEAR`, or by CG when the
+    shell's own size chose multigrid, :mod:`solvers.joint_krylov`). Only a converged solve
     moves the shell; a failed one reports failure and the body halves its step. The gradient
     reference is the largest initial coupled gradient so far (``shell.gradient_scale``,
     checkpointed).
@@ -79,8 +82,22 @@ class CoupledStep:
         if key not in self.solvers:
             energy = CoupledEnergy(self.shell.energy, self.shell.rest, self.B,
                                    BodyUnknowns(problem))
-            self.solvers[key] = (energy, ShellNewtonSolver(energy, self.options))
+            self.solvers[key] = (energy, ShellNewtonSolver(energy, self.options,
+                                                           krylov=self._krylov(energy)))
         return self.solvers[key]
+
+    def _krylov(self, energy: CoupledEnergy) -> JointKrylovSystem | None:
+        """Return the joint CG when the shell is solved by multigrid-CG, else None (direct).
+
+        The shell's own choice by size (:mod:`solvers.solver_choice`) decides for the joint
+        system too: its cost is the shell's V-cycles plus the coarse body's factorised block.
+        """
+        newton, hierarchy = self.shell.options.internals.newton, self.shell.hierarchy
+        if newton.linear_method != "multigrid" or hierarchy is None or energy.factor is None:
+            return None
+        shell_mg = MultigridLinearSystem(hierarchy.prolongations(),
+                                         dataclasses.replace(newton.multigrid, phase_space=False))
+        return JointKrylovSystem(shell_mg, energy.shell.penalty_factor, energy.body_factor)
 
     def _start(self, energy: CoupledEnergy) -> np.ndarray:
         """Return the warm start ``z_0 = (x_0, u_0)``, ``u_0`` the body's guess."""
@@ -115,7 +132,9 @@ class CoupledStep:
         x, u = energy.split(self.body.mesh.comm.bcast(z, root=0))
         energy.body.set(u.reshape(-1))
         self.shell.x, self.shell.y = np.array(x), energy.target(u)
-        self.shell.energy.set_target(self.shell.y)
+        # the barrier's reference normals stay the solve's: the frame's record evaluates W
+        # where the solve left it (the next warm start takes the new target's normals)
+        self.shell.energy.set_target(self.shell.y, normals=False)
         self.set_force()
         self.perturb = False
         return NewtonResult(True, 1, report.iterations, report.grad_norm, report.energy,

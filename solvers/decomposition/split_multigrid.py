@@ -280,7 +280,7 @@ class SplitMultigridSystem(KrylovBase):
         for jacobi in self._jacobi:
             jacobi.refresh()
         if self._estimate_due:
-            self._estimate()
+            self.renew_bounds()
             self._estimate_due = self.options.eigen_estimate == "setup"
         self._ksp.setUp()
         if self.phase is not None and self._deflated is None:

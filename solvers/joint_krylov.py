@@ -1,0 +1,203 @@
+"""CG for the joint Newton system of body and shell, preconditioned block by block.
+
+The two-way Newton matrix of :mod:`solvers.monolithic` is, with ``F = [G, -G B]`` the coupled
+penalty factor (``G^T G = 2 k_P H^T H (x) I_3``, pinned body columns removed),
+
+    M = [[K_x, 0], [0, K_u]] + F^T F + tau I
+      = [[K_x + G^T G + tau I,  -G^T G B], [-B^T G^T G,  K_u + B^T G^T G B + tau I]],
+
+``K_x`` the shell Hessian without the penalty and ``K_u`` the body's. The body is coarse (a few
+hundred to a few thousand dofs) and the shell fine. CG on ``M`` (Hestenes & Stiefel 1952)
+with the block-diagonal (block-Jacobi) preconditioner
+
+    S = diag(V_x, M_uu^{-1}),     M_uu = K_u + B^T G^T G B + tau I,
+
+``V_x`` one V-cycle of the shell's geometric multigrid for ``K_x + G^T G + tau I``
+(:class:`solvers.multigrid.MultigridLinearSystem`, symmetric: Chebyshev/Jacobi smoothing, the
+coarsest level factorised) and ``M_uu`` factorised exactly (MUMPS LDL^T, its pattern fixed,
+the analysis reused); ``S`` is symmetric positive definite when both diagonal blocks are, so
+the iteration is a preconditioned CG. A coarse correction on the span of ``[B; I]`` (shell and
+body moving together, where ``F`` vanishes) was measured and does not pay
+(docs/notes/two-way-coupling.md).
+
+Indefiniteness, as the shell Newton expects from a linear solver (``usable_spd``): a
+diagonal block that is not positive definite (``M_uu`` has a negative pivot) fails the
+set-up; a CG curvature ``p^T M p <=
+0`` or a non-positive ``r^T S r`` fails the solve (the shell Newton then moves on to the next
+shift). The CG tolerance is the shell's forcing term (:class:`solvers.multigrid.KrylovBase`),
+and a solution is accepted when its true residual is within ``residual_slack`` of it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from meshes.errors import InputError
+from solvers.linear import FactorReport, LinearSolverOptions, SparseDirectSolver
+from solvers.monolithic import PatternSum
+from solvers.multigrid import KrylovBase, MultigridLinearSystem
+
+BODY_LINEAR = LinearSolverOptions(symmetric="ldlt", mumps_blr=False)
+"""Factorisation of the body block: LDL^T, whose inertia says whether it is SPD."""
+
+
+@dataclass(frozen=True)
+class ShellBlock:
+    """The shell's part of a joint evaluation, as the shell multigrid reads it."""
+
+    hess: sp.csr_matrix
+    penalty_factor: sp.csr_matrix | None
+
+
+class JointKrylovSystem(KrylovBase):
+    """Block-preconditioned CG for the joint body-shell Newton matrix (serial, every rank).
+
+    Same interface as the shell's Newton-system solvers (``factorize(ev, tau)``,
+    ``solve(b)``, ``times()``). ``ev`` is a joint evaluation whose ``hess`` and
+    ``penalty_factor`` are ``blockdiag(K_x, K_u)`` and ``F`` and whose ``blocks`` are
+    ``(K_x, K_u)`` (:class:`solvers.monolithic.CoupledEval`).
+
+    Args:
+        shell: The shell's multigrid (its hierarchy ends at the shell's ``3 n`` dofs); its
+            options (forcing, CG iterations, residual slack) are this solver's too.
+        shell_factor: The shell's penalty factor ``G`` (None without penalty).
+        body_factor: ``F_u = -G B`` (pinned columns zero), the body columns of ``F``.
+
+    """
+
+    def __init__(self, shell: MultigridLinearSystem, shell_factor: sp.csr_matrix | None,
+                 body_factor: sp.csr_matrix | None) -> None:
+        if shell.phase is not None:
+            raise InputError("JointKrylovSystem: the shell multigrid must run without the "
+                             "phase space (its V-cycle is the shell block's preconditioner)")
+        super().__init__(shell.options)
+        self.shell = shell
+        self.n = shell.n
+        self.shell_factor = shell_factor
+        self._body_penalty = None if body_factor is None else (body_factor.T @ body_factor).tocsr()
+        self._current: tuple[Any, float] | None = None
+        self._sum: PatternSum | None = None
+        self._body: SparseDirectSolver | None = None
+
+    # ----------------------------------------------------------------------------- set-up
+
+    def factorize(self, ev: Any, tau: float) -> FactorReport:
+        """Set up both diagonal blocks of ``M`` for ``ev`` and shift ``tau``.
+
+        Fails (``usable_spd`` False) when a diagonal block is not positive definite: then
+        ``M`` is not (a principal submatrix of an SPD matrix is SPD).
+        """
+        start = time.perf_counter()
+        k_x, k_u = ev.blocks
+        if k_x.shape[0] != self.n:
+            raise InputError(f"JointKrylovSystem: shell block of {k_x.shape[0]} dofs, the "
+                             f"multigrid has {self.n}")
+        self._current = None
+        report = self.shell.factorize(ShellBlock(k_x, self.shell_factor), tau)
+        if not report.usable_spd:
+            return self._setup_done(start, report)
+        body = self._factorize_body(k_u, tau)
+        if not body.usable_spd:
+            return self._setup_done(start, replace(
+                body, success=False, reason="body block not positive definite"))
+        self._current = (ev, tau)
+        return self._setup_done(start, FactorReport(success=True, shift=float(tau)))
+
+    def _factorize_body(self, k_u: sp.csr_matrix, tau: float) -> FactorReport:
+        """Factorise ``M_uu = K_u + F_u^T F_u + tau I`` (pattern and analysis kept)."""
+        k_u = sp.csr_matrix(k_u)
+        n = k_u.shape[0]
+        diagonal = sp.csr_matrix((np.zeros(n), np.arange(n), np.arange(n + 1)), shape=(n, n))
+        pieces = [k_u, diagonal] + ([self._body_penalty] if self._body_penalty is not None
+                                    else [])
+        if self._sum is None:
+            self._sum = PatternSum((n, n), [(m, 0, 0) for m in pieces])
+        m_uu = self._sum(pieces)
+        if self._body is None:
+            self._body = SparseDirectSolver(m_uu, BODY_LINEAR)
+        return self._body.factorize(m_uu, tau)
+
+    # ----------------------------------------------------------------------------- solve
+
+    def apply(self, v: np.ndarray) -> np.ndarray:
+        """Return ``M v`` of the current system."""
+        assert self._current is not None  # factorize() succeeded first (internal invariant)
+        ev, tau = self._current
+        out = ev.hess @ v + tau * v
+        if ev.penalty_factor is not None:
+            out += ev.penalty_factor.T @ (ev.penalty_factor @ v)
+        return np.asarray(out)
+
+    def precondition(self, r: np.ndarray) -> np.ndarray:
+        """Return ``S r``: a shell V-cycle on the shell rows, the body block solved exactly."""
+        assert self._body is not None  # factorize() succeeded first (internal invariant)
+        body = self._body.solve(r[self.n:])
+        return np.concatenate([self.shell.precondition(r[:self.n]), body])
+
+    def _accepted_cg(self, rhs: np.ndarray) -> np.ndarray | None:
+        """PCG from zero; the solution if it converged to a true residual within the slack."""
+        if self._current is None:
+            return None
+        x, its, converged = self._cg(rhs)
+        self.stats.iterations.append(its)
+        if not converged:
+            return None
+        norm_b = float(np.linalg.norm(rhs)) or 1.0
+        residual = float(np.linalg.norm(rhs - self.apply(x))) / norm_b
+        if residual > self.options.residual_slack * self.eta:
+            return None
+        self.stats.true_residuals.append(residual)
+        return x
+
+    def _cg(self, rhs: np.ndarray) -> tuple[np.ndarray, int, bool]:
+        """``(x, iterations, converged)`` of preconditioned CG to ``||r|| <= eta ||b||``."""
+        x = np.zeros_like(rhs)
+        r = np.array(rhs, dtype=np.float64)
+        stop = self.eta * float(np.linalg.norm(r))
+        if stop == 0.0:
+            return x, 0, True
+        z = self.precondition(r)
+        rz = float(r @ z)
+        p = z.copy()
+        for k in range(1, self.options.max_iterations + 1):
+            if not rz > 0.0:  # S not positive definite on r
+                return x, k, False
+            q = self.apply(p)
+            curvature = float(p @ q)
+            if not curvature > 0.0:  # negative curvature: M is not SPD
+                return x, k, False
+            alpha = rz / curvature
+            x += alpha * p
+            r -= alpha * q
+            if float(np.linalg.norm(r)) <= stop:
+                return x, k, True
+            z = self.precondition(r)
+            rz, rz_old = float(r @ z), rz
+            p = z + (rz / rz_old) * p
+        return x, self.options.max_iterations, False
+
+    def _failed(self, rhs: np.ndarray) -> np.ndarray:
+        """Return a failed direction (NaN): the shell Newton moves on to the next shift."""
+        return np.full(rhs.shape, np.nan)
+
+    def renew_bounds(self) -> None:
+        """Make the shell multigrid's Chebyshev smoothers re-estimate their bounds."""
+        self.shell.renew_bounds()
+        self._bounds_stale = False
+
+    def reset_forcing(self) -> None:
+        """Start a new Newton solve (forcing history; the shell smoothers' bounds)."""
+        super().reset_forcing()
+        self.shell.reset_forcing()
+
+    def times(self) -> tuple[float, float, float]:
+        """Return (set-up, analysis, CG solve) seconds."""
+        return (self.stats.setup_time, 0.0, self.stats.solve_time)
+
+
+__all__ = ["JointKrylovSystem", "ShellBlock"]

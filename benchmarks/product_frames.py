@@ -3,10 +3,11 @@
 For each scene the command ``wrinkles run SCENE --out TMP --overwrite --set output.render=false
 [--frames N] [--set ...]`` is run in a subprocess, once with this tree and, with ``--before
 REV``, once with a detached git worktree of ``REV`` (its packages first on ``PYTHONPATH``, the
-same interpreter and venv), alternating per scene so both see the same machine load; a worktree
-first runs one frame of the first scene, outside the table, so that its numba kernels are
-compiled before it is timed. From each run's ``summary.json`` the table reports per scene and
-code:
+same interpreter and venv), alternating per scene so both see the same machine load; each code
+first runs one frame of every scene, outside the table, so that the numba kernels the scene
+uses are compiled into that tree's cache before it is timed (a scene whose kernels the
+warm-up missed pays their compilation inside its frames: 8-10 s on the default scene). From
+each run's ``summary.json`` the table reports per scene and code:
 
 * frames, shell Newton iterations, factorisations (numeric, shifted retries included) and the
   failed ones (attempts beyond one per iteration that factorised), shell set-up method and
@@ -38,6 +39,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import platform
@@ -144,7 +146,7 @@ def print_row(scene: str, label: str, r: dict[str, Any]) -> None:
     print(f"{scene:>18} {label:>8} {r['ranks']:>2} {r['method']:>9} {r['threads']:>3} "
           f"{r['frames']:>3} {sum(r['shell_iterations']):>6} {total:>6} {failed:>6} "
           f"{shown:9.2f}{mark} {shown / n:8.2f} {r['frames_wall']:8.2f} {speedup} {memory} "
-          f"{r['process_cpu']:8.2f} {(r['shell_energy'] or [float('nan')])[-1]:12.6e} "
+          f"{r['process_cpu']:8.2f} {float((r['shell_energy'] or ['nan'])[-1]):12.6e} "
           f"{r['unconverged'] or ''}", flush=True)
 
 
@@ -182,10 +184,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                            "overrides": args.overrides, "ranks": args.ranks, "rows": []}
     print(HEADER)
     try:
-        for label, code in codes[1:]:  # numba compiles into the worktree's cache once
-            warm = run_cli(code, scene_path(args.scenes[0]), tmp / "out", 1, args.overrides,
-                           args.timeout)
-            print(f"{'(warm-up)':>18} {label:>8}  one frame of {args.scenes[0]}: exit "
+        for (label, code), scene in itertools.product(codes, args.scenes):
+            warm = run_cli(code, scene_path(scene), tmp / "out", 1, args.overrides,
+                           args.timeout)  # numba compiles each scene's kernels into its cache
+            print(f"{'(warm-up)':>18} {label:>8}  one frame of {scene}: exit "
                   f"{warm['exit']}, {warm['process_wall']:.1f} s", flush=True)
         for scene in args.scenes:
             first: dict[str, float] = {}  # frames' wall time at the first rank count, per code

@@ -117,7 +117,9 @@ class XdmfSeries:
             beside it).
         fields: output name -> vector field (P1 or P2), e.g. ``{"displacement": u}``.
         resume_after: ``None`` to start a new file; for a restart, the time [s] of the
-            restored state: the existing file is kept and its steps after that time are
+            restored state: the existing file is kept (its mesh and node order; a run on
+            another number of ranks writes its steps in that order) and its steps after that
+            time are
             removed (XML and HDF5 data), so the rerun frames replace them.
 
     """
@@ -130,6 +132,7 @@ class XdmfSeries:
         self._nodal = {name: p1_function(u, name) for name, u in self.fields.items()}
         self.mesh = next(iter(self.fields.values())).function_space.mesh
         self.comm = self.mesh.comm
+        self._order: np.ndarray | None = None  # rank 0: the file's node order, if another
         on_root(self.comm, lambda: self.work.parent.mkdir(parents=True, exist_ok=True))
         if resume_after is None:
             with dolfinx.io.XDMFFile(self.comm, str(self.work), "w") as xdmf:
@@ -138,7 +141,7 @@ class XdmfSeries:
                 self.path, self.work, lambda: merge_time_collections(self.work, self.path)))
         else:
             geometry = written_geometry(self.mesh)
-            on_root(self.comm, lambda: resume_file(path, geometry, resume_after))
+            self._order = on_root(self.comm, lambda: resume_file(path, geometry, resume_after))
 
     def write(self, t: float) -> None:
         """Write the current values of the fields at physical time ``t`` [s] and commit."""
@@ -148,7 +151,13 @@ class XdmfSeries:
             xdmf.write_mesh(self.mesh)  # a step file without a mesh makes dolfinx warn
             for u1 in self._nodal.values():
                 xdmf.write_function(u1, t)
-        on_root(self.comm, lambda: commit_step(self.path, self.work))
+        on_root(self.comm, self._commit)
+
+    def _commit(self) -> None:
+        """Commit the step in ``work`` (rank 0), its nodal values in the file's node order."""
+        if self._order is not None:
+            reorder_fields(self.work.with_suffix(".h5"), self._order)
+        commit_step(self.path, self.work)
 
 
 def steps_dir(path: Path) -> Path:
@@ -297,14 +306,20 @@ def written_geometry(mesh: dolfinx.mesh.Mesh) -> np.ndarray | None:
     return None if parts is None else np.concatenate(parts)
 
 
-def resume_file(path: Path, geometry: np.ndarray | None, t: float) -> None:
-    """Check that new steps can be appended to ``path``, then drop its steps after ``t``.
+def resume_file(path: Path, geometry: np.ndarray | None, t: float) -> np.ndarray | None:
+    """Check that new steps can be appended to ``path``, drop its steps after ``t``.
 
-    Appended nodal values follow the node order of this run's partition, so the mesh stored
-    in the file must have exactly that order (same mesh, same number of ranks).
+    Appended nodal values follow the node order of this run's partition (``geometry``, the
+    nodes as :func:`written_geometry` gathers them); a file written on another number of
+    ranks stores the same nodes in another order, and the steps of this run are then
+    permuted into the file's order (:func:`node_order`, :func:`reorder_fields`).
+
+    Returns:
+        The permutation ``p`` with ``geometry[p]`` in the file's order, None when the orders
+        agree.
 
     Raises:
-        InputError: no such file, or its mesh is stored in another node order.
+        InputError: no such file, or its mesh has other nodes (another mesh).
 
     """
     h5_path = path.with_suffix(".h5")
@@ -312,12 +327,43 @@ def resume_file(path: Path, geometry: np.ndarray | None, t: float) -> None:
         raise InputError(f"{path}: no XDMF time series to continue")
     with h5py.File(h5_path, "r") as h5:
         stored = h5["Mesh/mesh/geometry"][...]
-    if geometry is None or stored.shape != geometry.shape or not np.array_equal(stored,
-                                                                                geometry):
-        raise InputError(f"{path}: its mesh was written with another node order (another "
-                         "number of MPI ranks?); restart on the original number of ranks, or "
-                         "with --set output.xdmf=false")
+    order = node_order(stored, geometry)
+    if order is None:
+        raise InputError(f"{path}: its mesh has other nodes than this run's ({stored.shape[0]} "
+                         f"stored); continue with the scene that wrote it, or --set "
+                         f"output.xdmf=false")
     drop_steps_after(path, t)
+    return None if np.array_equal(order, np.arange(order.size)) else order
+
+
+def node_order(stored: np.ndarray, geometry: np.ndarray | None) -> np.ndarray | None:
+    """Return ``p`` with ``geometry[p] == stored`` row by row, or None if no such ``p``.
+
+    The nodes are matched by their coordinates, which a repartitioned mesh keeps bitwise
+    (dolfinx moves nodes between ranks, it does not recompute them).
+    """
+    if geometry is None or stored.shape != geometry.shape:
+        return None
+    by_stored = np.lexsort(stored.T[::-1])
+    by_geometry = np.lexsort(geometry.T[::-1])
+    if not np.array_equal(stored[by_stored], geometry[by_geometry]):
+        return None
+    order = np.empty(stored.shape[0], dtype=np.int64)
+    order[by_stored] = by_geometry
+    return order
+
+
+def reorder_fields(h5_path: Path, order: np.ndarray) -> None:
+    """Permute the node rows of every field dataset (``/Function/...``) of a step file."""
+    with h5py.File(h5_path, "r+") as h5:
+        if "Function" not in h5:
+            return
+        datasets: list[h5py.Dataset] = []
+        h5["Function"].visititems(
+            lambda _name, obj: datasets.append(obj) if isinstance(obj, h5py.Dataset) else None)
+        for data in datasets:
+            if data.shape[0] == order.size:
+                data[...] = data[...][order]
 
 
 def drop_steps_after(path: Path, t: float) -> None:

@@ -427,8 +427,13 @@ class Body:
         self._set_pins(self.t)
         self._accel_ready = True
 
-    def step(self) -> StepReport:
+    def step(self, guess: np.ndarray | None = None) -> StepReport:
         """Advance by ``options.dt`` (time or load parameter), halving on failure.
+
+        Args:
+            guess: Initial Newton guess of ``u`` (this rank's dof array, pins applied on top)
+                for the whole step; None: the predictor (dynamics) or ``u + h du/dt``
+                (statics). A halved sub-step always starts from its predictor.
 
         Raises:
             SolverError: The step failed ``max_halvings + 1`` times; the state before the
@@ -436,7 +441,7 @@ class Body:
 
         """
         dynamic = self.options.dynamics != "static"
-        return self._advance(self.t + self.options.dt, dynamic)
+        return self._advance(self.t + self.options.dt, dynamic, guess)
 
     def solve_static(self) -> StepReport:
         """Equilibrium at the current time with the current pins (no inertia); v = 0."""
@@ -448,8 +453,12 @@ class Body:
 
     # --- stepping ------------------------------------------------------------------------------
 
-    def _advance(self, t_target: float, dynamic: bool) -> StepReport:
-        """Reach ``t_target`` by sub-steps, halving the sub-step after each failure."""
+    def _advance(self, t_target: float, dynamic: bool,
+                 guess: np.ndarray | None = None) -> StepReport:
+        """Reach ``t_target`` by sub-steps, halving the sub-step after each failure.
+
+        ``guess`` is the first sub-step's initial guess when that sub-step is the whole step.
+        """
         start = self.snapshot()
         h = max(t_target - self.t, 0.0)
         iterations, halvings, substeps = 0, 0, 0
@@ -458,7 +467,8 @@ class Body:
             first = False
             h = min(h, t_target - self.t)
             saved = self.snapshot()
-            result = self._substep(h, dynamic)
+            whole = guess is not None and halvings == 0 and substeps == 0
+            result = self._substep(h, dynamic, guess if whole else None)
             iterations += result.iterations
             if result.converged:
                 substeps += 1
@@ -471,17 +481,18 @@ class Body:
             h *= 0.5
         return self._report(iterations, halvings, substeps)
 
-    def _substep(self, h: float, dynamic: bool) -> NewtonResult:
-        """One Newton solve from ``t`` to ``t + h``; updates v, a and t on success."""
+    def _substep(self, h: float, dynamic: bool, guess: np.ndarray | None = None
+                 ) -> NewtonResult:
+        """One Newton solve from ``t`` to ``t + h`` (from ``guess`` if given); updates v, a, t."""
         t_new = self.t + h
         self._set_pins(t_new)
         solver = self._static_solver
         if dynamic:
             self._ensure_initial_acceleration()
-            self._predict(h)
+            self._predict(h, guess)
             solver = self._dynamic_solver  # type: ignore[assignment]
         else:
-            self._static_guess(h)
+            self._static_guess(h, guess)
         result = self._solve(solver)
         if result.converged:
             if dynamic:
@@ -491,14 +502,15 @@ class Body:
             self.t = t_new
         return result
 
-    def _static_guess(self, h: float) -> None:
+    def _static_guess(self, h: float, guess: np.ndarray | None = None) -> None:
         """Set the initial guess of a load step: ``u + h du/dt`` of the last step, pins applied.
 
         Falls back to the current ``u`` with the new pin values when the extrapolation
-        is inadmissible (``det F <= 0``); a first step uses that directly.
+        is inadmissible (``det F <= 0``); a first step uses that directly. ``guess`` replaces
+        the extrapolation.
         """
         self._u_n.x.array[:] = self.u.x.array
-        self._set_guess(self.u.x.array + h * self.rate.x.array)
+        self._set_guess(self.u.x.array + h * self.rate.x.array if guess is None else guess)
 
     def _set_guess(self, guess: np.ndarray) -> None:
         """Set ``u = guess`` with the pins applied; ``u_n`` (pins applied) if ``det F <= 0``."""
@@ -517,8 +529,8 @@ class Body:
             bc.set(self.u.x.array)
         self.u.x.scatter_forward()
 
-    def _predict(self, h: float) -> None:
-        """Store u_n, v_n, a_n; set u_pred, the inertia weight and the initial guess u_pred."""
+    def _predict(self, h: float, guess: np.ndarray | None = None) -> None:
+        """Store u_n, v_n, a_n; set u_pred, the inertia weight and the guess (u_pred if None)."""
         newmark = self.options.dynamics == "newmark"
         beta = NEWMARK_BETA if newmark else 1.0
         for dst, src in ((self._u_n, self.u), (self._v_n, self.v), (self._a_n, self.a)):
@@ -528,7 +540,7 @@ class Body:
             pred += h * h * (0.5 - beta) * self.a.x.array
         self._u_pred.x.array[:] = pred
         self._inertia.value = 1.0 / (beta * h * h)  # type: ignore[assignment]
-        self._set_guess(pred)
+        self._set_guess(pred if guess is None else guess)
 
     def _update_kinematics(self, h: float) -> None:
         """Set v (and a for Newmark) at the end of the sub-step from the new u."""

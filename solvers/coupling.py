@@ -11,7 +11,8 @@
   solve is tested against.
 * Rigid balls <-> body (:class:`BallCoupling`): per body step the interface equation of the
   ball positions is solved by Broyden's method (:func:`broyden_solve`), each residual a body
-  step with the spheres moved (:mod:`models.rigid` has the scheme and the momentum ledger).
+  step with the spheres moved, its Newton started from the previous residual's solution
+  (:mod:`models.rigid` has the scheme and the momentum ledger).
 """
 
 from __future__ import annotations
@@ -334,8 +335,9 @@ class BallCoupling:
 
         def residual(c: np.ndarray) -> np.ndarray:
             self.set_centers(c)
+            guess = body.u.x.array.copy() if "report" in last else None  # the last solve's u
             body.restore(saved)
-            report = body.step()
+            report = body.step(guess)
             if "report" in last:
                 report = dataclasses.replace(report, **{
                     k: getattr(report, k) + getattr(last["report"], k)

@@ -123,3 +123,25 @@ def test_moving_pins_in_dynamics_follow_the_prescribed_motion():
     assert np.allclose(U[top], [0.0, 0.0, -0.2], atol=1e-14)
     assert np.allclose(V[top], [0.0, 0.0, -0.1], atol=1e-12)
     assert diff < 1e-4
+
+
+@pytest.mark.parametrize("dynamics", ["implicit_euler", "newmark"])
+def test_step_from_a_guess_reaches_the_same_state_in_fewer_iterations(dynamics):
+    """``Body.step(guess)`` starts Newton from ``guess`` instead of the predictor: from the
+    step's own solution (perturbed by 1e-9 of its size) it takes one iteration against the
+    predictor's 2 (measured, both schemes) and ends at
+    the same state to the Newton tolerance; the kinematics (v) follow from the same u."""
+    body = free_block(dynamics)
+    for _ in range(3):
+        body.step()
+    saved = body.snapshot()
+    plain = body.step()
+    u, v = body.u.x.array.copy(), body.v.x.array.copy()
+    body.restore(saved)
+    guessed = body.step(u + 1e-9 * np.abs(u).max())
+    print(dynamics, "iterations from the predictor", plain.newton_iterations,
+          "from the guess", guessed.newton_iterations)
+    assert guessed.newton_iterations <= 1 < plain.newton_iterations
+    scale = np.abs(u).max()
+    assert np.abs(body.u.x.array - u).max() <= 1e-8 * scale
+    assert np.abs(body.v.x.array - v).max() <= 1e-8 * scale / body.options.dt  # v ~ u / dt

@@ -9,8 +9,9 @@ uses are compiled into that tree's cache before it is timed (a scene whose kerne
 warm-up missed pays their compilation inside its frames: 8-10 s on the default scene). From
 each run's ``summary.json`` the table reports per scene and code:
 
-* frames, shell Newton iterations, factorisations (numeric, shifted retries included) and the
-  failed ones (attempts beyond one per iteration that factorised), shell set-up method and
+* frames, body Newton iterations (``body``), shell Newton iterations, factorisations
+  (numeric, shifted retries included) and the failed ones (attempts beyond one per
+  iteration that factorised), shell set-up method and
   threads when the code records them;
 * the frames' time: process CPU time of the frames (``cpu_time`` of each frame record; for
   code that does not record it, the frames' wall time, marked ``*``: a serial, one-thread run
@@ -121,6 +122,7 @@ def summary_row(summary: dict[str, Any]) -> dict[str, Any]:
     solver = summary.get("run", {}).get("shell", {}).get("solver", {})
     return {
         "frames": len(frames), "shell_iterations": its, "factorizations": facts,
+        "body_iterations": [int(f.get("newton_iterations", 0)) for f in frames],
         "failed_factorizations": [max(0, n - i) for n, i in zip(facts, its, strict=True)],
         "frames_cpu": sum(f["cpu_time"] for f in frames) if has_cpu else None,
         "frames_wall": sum(f["wall_time"] for f in frames),
@@ -144,14 +146,15 @@ def print_row(scene: str, label: str, r: dict[str, Any]) -> None:
     speedup = f"{r['speedup']:5.2f}x" if r.get("speedup") else f"{'-':>6}"
     memory = f"{r['peak_memory_mb']:7.0f}" if r.get("peak_memory_mb") else f"{'-':>7}"
     print(f"{scene:>18} {label:>8} {r['ranks']:>2} {r['method']:>9} {r['threads']:>3} "
-          f"{r['frames']:>3} {sum(r['shell_iterations']):>6} {total:>6} {failed:>6} "
+          f"{r['frames']:>3} {sum(r['body_iterations']):>6} {sum(r['shell_iterations']):>6} "
+          f"{total:>6} {failed:>6} "
           f"{shown:9.2f}{mark} {shown / n:8.2f} {r['frames_wall']:8.2f} {speedup} {memory} "
           f"{r['process_cpu']:8.2f} {float((r['shell_energy'] or ['nan'])[-1]):12.6e} "
           f"{r['unconverged'] or ''}", flush=True)
 
 
 HEADER = (f"{'scene':>18} {'code':>8} {'np':>2} {'method':>9} {'thr':>3} {'frm':>3} "
-          f"{'its':>6} {'facts':>6} {'failed':>6} {'frames s':>10} {'s/frame':>8} "
+          f"{'body':>6} {'its':>6} {'facts':>6} {'failed':>6} {'frames s':>10} {'s/frame':>8} "
           f"{'wall s':>8} {'speed':>6} {'mem MB':>7} {'proc CPU':>8} {'final W':>12} "
           "unconverged")
 

@@ -12,7 +12,8 @@ TINY = ["--scenes", "default", "--frames", "1", "--set", "shell.subdivision.leve
 
 def test_summary_row_counts_failed_factorisations_and_reads_the_cpu_time():
     summary = {"run": {"shell": {"solver": {"method": "multigrid", "threads": 2}}},
-               "frames": [{"frame": 1, "wall_time": 2.0, "cpu_time": 3.0, "details": {
+               "frames": [{"frame": 1, "wall_time": 2.0, "cpu_time": 3.0,
+                           "newton_iterations": 9, "details": {
                    "shell_iterations": 4, "shell_factorizations": 7, "shell_energy": 0.5,
                    "shell_converged": True}},
                           {"frame": 2, "wall_time": 1.0, "cpu_time": 1.5, "details": {
@@ -20,6 +21,7 @@ def test_summary_row_counts_failed_factorisations_and_reads_the_cpu_time():
                               "shell_energy": 0.25, "shell_converged": False}}]}
     row = summary_row(summary)
     assert row["failed_factorizations"] == [3, 0]
+    assert row["body_iterations"] == [9, 0]
     assert row["frames_cpu"] == 4.5 and row["frames_wall"] == 3.0
     assert row["unconverged"] == [2]
     assert (row["method"], row["threads"]) == ("multigrid", 2)

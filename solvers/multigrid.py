@@ -609,7 +609,8 @@ class KrylovStats:
         true_residuals: True relative residual of every accepted CG solution.
         fallbacks: Solves handed to the direct solver.
         fallback_time: Seconds of that in the direct factorisation and solve.
-        indefinite_skips: Set-ups that stopped at an indefinite phase-space matrix.
+        indefinite_skips: Set-ups whose phase-space matrix was indefinite (their CG ran
+            without the phase correction).
 
     """
 
@@ -818,10 +819,12 @@ class MultigridLinearSystem(KrylovBase):
     def factorize(self, ev: Any, tau: float) -> FactorReport:
         """Set the preconditioner up for ``ev.hess + tau I (+ G^T G)``.
 
-        Always "succeeds", except with the phase space: when its Galerkin matrix ``Z^T A Z``
-        has negative pivots, A is indefinite (a Rayleigh quotient ``z^T A z < 0``), and the
-        report says so without setting the multigrid up or running CG (the shell Newton then
-        moves on to the next shift).
+        Always "succeeds": whether the matrix is positive definite enough is CG's to find
+        (negative curvature fails the solve, the shell Newton then moves on to the next
+        shift). With the phase space, a Galerkin matrix ``Z^T A Z`` with negative pivots
+        (A indefinite on ``span Z``) leaves the correction out of that matrix's CG; stopping
+        the set-up there instead pinned the shift on a saddle of the bent bar for 300
+        iterations (docs/notes/phase-space.md).
         """
         start = time.perf_counter()
         if ev.hess is None:
@@ -839,7 +842,6 @@ class MultigridLinearSystem(KrylovBase):
         phase = self._update_phase(ev.penalty_factor, tau, same_matrix)
         if phase is not None and phase.indefinite:
             self.stats.indefinite_skips += 1
-            return self._setup_done(start, replace(phase, shift=float(tau)))
         self._galerkin_products()
         self._update_coarse()
         if self._ksp is None:

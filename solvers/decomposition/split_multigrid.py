@@ -31,8 +31,8 @@ its own vertices on every level and PETSc does the products and the messages.
   every set-up; a failed CG with bounds from an earlier Newton iteration is repeated once
   with new bounds), as in the serial solver.
 * With ``options.phase_space`` the wrinkle-phase coarse space of :mod:`.split_phase` deflates
-  CG (A-DEF2 around the V-cycle, from ``x_0 = Q b``), as in the serial solver; an indefinite
-  ``Z^T A Z`` ends the set-up with a failed report (the Newton moves to its next shift).
+  CG (A-DEF2 around the V-cycle, from ``x_0 = Q b``), as in the serial solver; with an
+  indefinite ``Z^T A Z`` that matrix's CG runs without the correction.
 
 The PCMG set-up, Galerkin levels and deflated CG are the serial solver's own functions; its
 coarse SBAIJ copies, threads and direct fallback have no distributed form (one rank: serial).
@@ -41,7 +41,7 @@ coarse SBAIJ copies, threads and direct fallback have no distributed form (one r
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -272,7 +272,6 @@ class SplitMultigridSystem(KrylovBase):
         phase = self._update_phase(tau, same_matrix)
         if phase is not None and phase.indefinite:
             self.stats.indefinite_skips += 1
-            return self._setup_done(start, replace(phase, shift=float(tau)))
         self._galerkin = galerkin_levels(self._fine.mat, self.p_mats, self._galerkin)
         self._update_coarse()
         if self._ksp is None:

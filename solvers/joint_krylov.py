@@ -22,10 +22,10 @@ body moving together, where ``F`` vanishes) was measured and does not pay
 
 Indefiniteness, as the shell Newton expects from a linear solver (``usable_spd``): a
 diagonal block that is not positive definite (``M_uu`` has a negative pivot) fails the
-set-up; a CG curvature ``p^T M p <=
-0`` or a non-positive ``r^T S r`` fails the solve (the shell Newton then moves on to the next
-shift). The CG tolerance is the shell's forcing term (:class:`solvers.multigrid.KrylovBase`),
-and a solution is accepted when its true residual is within ``residual_slack`` of it.
+set-up; a CG curvature ``p^T M p <= 0`` or a non-positive ``r^T S r`` fails the solve (the
+shell Newton then moves on to the next shift). The CG tolerance is the shell's forcing term
+(:class:`solvers.multigrid.KrylovBase`), and a solution is accepted when its true residual is
+within ``residual_slack`` of it.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ import scipy.sparse as sp
 from meshes.errors import InputError
 from solvers.linear import FactorReport, LinearSolverOptions, SparseDirectSolver
 from solvers.monolithic import PatternSum
-from solvers.multigrid import KrylovBase, MultigridLinearSystem
+from solvers.multigrid import KrylovBase, MultigridLinearSystem, shifted_product
 
 BODY_LINEAR = LinearSolverOptions(symmetric="ldlt", mumps_blr=False)
 """Factorisation of the body block: LDL^T, whose inertia says whether it is SPD."""
@@ -127,11 +127,7 @@ class JointKrylovSystem(KrylovBase):
     def apply(self, v: np.ndarray) -> np.ndarray:
         """Return ``M v`` of the current system."""
         assert self._current is not None  # factorize() succeeded first (internal invariant)
-        ev, tau = self._current
-        out = ev.hess @ v + tau * v
-        if ev.penalty_factor is not None:
-            out += ev.penalty_factor.T @ (ev.penalty_factor @ v)
-        return np.asarray(out)
+        return shifted_product(*self._current, v)
 
     def precondition(self, r: np.ndarray) -> np.ndarray:
         """Return ``S r``: a shell V-cycle on the shell rows, the body block solved exactly."""

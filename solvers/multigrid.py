@@ -988,11 +988,7 @@ class MultigridLinearSystem(KrylovBase):
     def apply(self, x: np.ndarray) -> np.ndarray:
         """Return ``(A + tau I + G^T G) x`` of the current system (scipy; true residuals)."""
         assert self._current is not None  # factorize() ran first (internal invariant)
-        ev, tau = self._current
-        out = ev.hess @ x + tau * x
-        if ev.penalty_factor is not None:
-            out += ev.penalty_factor.T @ (ev.penalty_factor @ x)
-        return np.asarray(out)
+        return shifted_product(*self._current, x)
 
     def true_residual(self, x: np.ndarray, rhs: np.ndarray) -> float:
         """``||b - A x|| / ||b||`` of the current system."""
@@ -1041,6 +1037,14 @@ class MultigridLinearSystem(KrylovBase):
         direct = self.fallback.times() if self.fallback is not None else (0.0, 0.0, 0.0)
         return (self.stats.setup_time + direct[0], direct[1],
                 self.stats.solve_time - self.stats.fallback_time + direct[2])
+
+
+def shifted_product(ev: Any, tau: float, x: np.ndarray) -> np.ndarray:
+    """Return ``(A + tau I + G^T G) x`` with ``A = ev.hess`` and ``G = ev.penalty_factor``."""
+    out = ev.hess @ x + tau * x
+    if ev.penalty_factor is not None:
+        out += ev.penalty_factor.T @ (ev.penalty_factor @ x)
+    return np.asarray(out)
 
 
 def penalty_levels(g: sp.csr_matrix | None, prolongations: tuple[sp.csr_matrix, ...]

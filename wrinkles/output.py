@@ -119,8 +119,7 @@ class XdmfSeries:
         resume_after: ``None`` to start a new file; for a restart, the time [s] of the
             restored state: the existing file is kept (its mesh and node order; a run on
             another number of ranks writes its steps in that order) and its steps after that
-            time are
-            removed (XML and HDF5 data), so the rerun frames replace them.
+            time are removed (XML and HDF5 data), so the rerun frames replace them.
 
     """
 

@@ -82,6 +82,7 @@ class JointKrylovSystem(KrylovBase):
         self._body_penalty = None if body_factor is None else (body_factor.T @ body_factor).tocsr()
         self._current: tuple[Any, float] | None = None
         self._sum: PatternSum | None = None
+        self._constant: list[sp.csr_matrix] | None = None
         self._body: SparseDirectSolver | None = None
 
     # ----------------------------------------------------------------------------- set-up
@@ -110,11 +111,12 @@ class JointKrylovSystem(KrylovBase):
 
     def _factorize_body(self, k_u: sp.csr_matrix, tau: float) -> FactorReport:
         """Factorise ``M_uu = K_u + F_u^T F_u + tau I`` (pattern and analysis kept)."""
-        k_u = sp.csr_matrix(k_u)
         n = k_u.shape[0]
-        diagonal = sp.csr_matrix((np.zeros(n), np.arange(n), np.arange(n + 1)), shape=(n, n))
-        pieces = [k_u, diagonal] + ([self._body_penalty] if self._body_penalty is not None
-                                    else [])
+        if self._constant is None:  # a zero diagonal (for the shift) and F_u^T F_u, fixed
+            diagonal = sp.csr_matrix((np.zeros(n), np.arange(n), np.arange(n + 1)), shape=(n, n))
+            self._constant = [diagonal] + ([self._body_penalty]
+                                           if self._body_penalty is not None else [])
+        pieces = [sp.csr_matrix(k_u), *self._constant]
         if self._sum is None:
             self._sum = PatternSum((n, n), [(m, 0, 0) for m in pieces])
         m_uu = self._sum(pieces)
@@ -141,14 +143,7 @@ class JointKrylovSystem(KrylovBase):
             return None
         x, its, converged = self._cg(rhs)
         self.stats.iterations.append(its)
-        if not converged:
-            return None
-        norm_b = float(np.linalg.norm(rhs)) or 1.0
-        residual = float(np.linalg.norm(rhs - self.apply(x))) / norm_b
-        if residual > self.options.residual_slack * self.eta:
-            return None
-        self.stats.true_residuals.append(residual)
-        return x
+        return self._kept(x, rhs, converged)
 
     def _cg(self, rhs: np.ndarray) -> tuple[np.ndarray, int, bool]:
         """``(x, iterations, converged)`` of preconditioned CG to ``||r|| <= eta ||b||``."""

@@ -739,6 +739,26 @@ class KrylovBase:
         """One CG solve; its solution if it passed the true-residual test (subclass)."""
         raise NotImplementedError
 
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """Return the current system's matrix times ``x`` (a serial subclass's product)."""
+        raise NotImplementedError
+
+    def true_residual(self, x: np.ndarray, rhs: np.ndarray) -> float:
+        """``||b - A x|| / ||b||`` of the current system (:meth:`apply`)."""
+        norm_b = float(np.linalg.norm(rhs)) or 1.0
+        return float(np.linalg.norm(rhs - self.apply(x))) / norm_b
+
+    def _kept(self, x: np.ndarray, rhs: np.ndarray, converged: bool) -> np.ndarray | None:
+        """Return ``x`` if CG converged to a true residual within the slack, else None.
+
+        The slack is ``residual_slack`` times the forcing term; a kept residual is recorded.
+        """
+        residual = self.true_residual(x, rhs) if converged else np.inf
+        if residual > self.options.residual_slack * self.eta:
+            return None
+        self.stats.true_residuals.append(residual)
+        return x
+
     def _failed(self, rhs: np.ndarray) -> np.ndarray:
         """Return the direction when CG failed (subclass: a fallback solve, or NaN)."""
         raise NotImplementedError
@@ -803,6 +823,7 @@ class MultigridLinearSystem(KrylovBase):
         self.phase = self._phase_space(geometry)
         self._deflated: Any = None
         self._phase_ready = False
+        self._pc_vecs: tuple[Any, Any] | None = None
 
     def _phase_space(self, geometry: tuple[np.ndarray, np.ndarray] | None) -> PhaseSpace | None:
         """Build the :class:`~solvers.phase_space.PhaseSpace` when ``options.phase_space``."""
@@ -977,33 +998,23 @@ class MultigridLinearSystem(KrylovBase):
         solved exactly), so it can precondition an outer CG (:mod:`solvers.joint_krylov`).
         """
         assert self._ksp is not None  # factorize() set it up (internal invariant)
-        b, x = self._operators[-1].createVecs()
+        if self._pc_vecs is None:  # the fine size never changes: one pair for every call
+            self._pc_vecs = self._operators[-1].createVecs()
+        b, x = self._pc_vecs
         b.setArray(np.ascontiguousarray(r, dtype=np.float64))
         self._ksp.getPC().apply(b, x)
-        out = x.getArray().copy()
-        for vec in (b, x):
-            vec.destroy()
-        return out
+        return x.getArray().copy()
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """Return ``(A + tau I + G^T G) x`` of the current system (scipy; true residuals)."""
         assert self._current is not None  # factorize() ran first (internal invariant)
         return shifted_product(*self._current, x)
 
-    def true_residual(self, x: np.ndarray, rhs: np.ndarray) -> float:
-        """``||b - A x|| / ||b||`` of the current system."""
-        norm_b = float(np.linalg.norm(rhs)) or 1.0
-        return float(np.linalg.norm(rhs - self.apply(x))) / norm_b
-
     def _accepted_cg(self, rhs: np.ndarray) -> np.ndarray | None:
         """CG from zero; the solution if it converged to a true residual within the slack."""
         x, its, reason = self._cg(rhs)
         self.stats.iterations.append(its)
-        residual = self.true_residual(x, rhs) if reason > 0 else np.inf
-        if reason > 0 and residual <= self.options.residual_slack * self.eta:
-            self.stats.true_residuals.append(residual)
-            return x
-        return None
+        return self._kept(x, rhs, reason > 0)
 
     def _cg(self, rhs: np.ndarray) -> tuple[np.ndarray, int, int]:
         """``(x, iterations, converged reason)`` of one CG solve from x = 0."""

@@ -449,6 +449,19 @@ class _LinearSystem:
                 sum(s.analysis_time for s in stats), sum(s.solve_time for s in stats))
 
 
+def next_first_shift(taus: list[float], decay: float) -> float:
+    """Where the next solve's first iteration starts, from this solve's first-iteration shifts.
+
+    A warm-started frame's first iteration meets the Hessian its target's motion made
+    indefinite, much like the frame before's: it starts at the shift that one accepted
+    (``taus[-1]``) when it had to climb to it, or one decay below it when its first attempt
+    was accepted, so the start follows the needed shift down as well as up (the
+    trust-region radius update of Nocedal & Wright, Alg. 4.1, on the shift). ``taus``: the
+    shifts tried, in order, the last one accepted.
+    """
+    return taus[-1] / decay if len(taus) == 1 else taus[-1]
+
+
 def _grad_norm(ev: EnergyEval) -> float:
     """Euclidean norm of the gradient of an order >= 1 evaluation."""
     if ev.grad is None:
@@ -542,6 +555,7 @@ class ShellNewtonSolver:
                                                 geometry=(hierarchy.vertices, hierarchy.faces))
             self.linear = self.krylov
         self._last_shift = 0.0
+        self._first_shift = 0.0  # where the next solve's first iteration starts its shifts
         self._factor_age = 0  # iterations served by the current factorisation (0 = none)
         self._refresh = True  # the next iteration must factorise (modified Newton)
         self._mode_now = ""
@@ -699,14 +713,17 @@ class ShellNewtonSolver:
             return direction is not None
 
         restartable = first and self.options.inertia_restart and self.krylov is None
+        start = self._last_shift / self.options.shift_decay
         reports = factorize_with_shift(factorize, scale, self.options.shift,
-                                       self._last_shift / self.options.shift_decay,
+                                       max(start, self._first_shift) if first else start,
                                        accept, zero_first=near or None,
                                        restart=self._restart(ev) if restartable else None)
         if not found:
             self._factor_age = 0
             return None
         self._last_shift, self._factor_age = taus[-1], 1
+        if first:
+            self._first_shift = next_first_shift(taus, self.options.shift_decay)
         return self._step(x, ev, found[0], taus[-1], len(reports),
                           reports[0].negative_pivots, cg_before)
 

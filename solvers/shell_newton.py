@@ -16,7 +16,8 @@ with Newton's method warm-started from the previous frame). Iteration k:
    2nd ed., Alg. 3.3), one schedule for every caller (:func:`solvers.linear.shift_candidates`):
    far from the minimum (``||g|| > switch_rtol g_ref``) an iteration after a shifted one
    starts at ``tau_prev / shift_decay`` without the unshifted attempt; nearer, ``tau = 0`` is
-   tried first (measured schedules: docs/notes/shift-schedule.md);
+   tried first; a solve's first iteration starts where the previous solve's first iteration
+   needed its shift (:func:`next_first_shift`; measured schedules: docs/notes/shift-schedule.md);
    with ``linear_method = "multigrid"`` the Newton system is solved by CG preconditioned by
    geometric multigrid on the subdivision hierarchy (:mod:`solvers.multigrid`), and with
    ``modified.enabled`` one factorisation serves several iterations and frames;

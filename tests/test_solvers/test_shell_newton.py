@@ -13,7 +13,13 @@ from models.shell.energy import ShellEnergy, ShellParams
 from models.shell.rest import RestState
 from models.shell.topology import ShellTopology
 from solvers.linear import LinearSolverOptions, ShiftOptions
-from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver, ShellSolveError, minimize
+from solvers.shell_newton import (
+    ShellNewtonOptions,
+    ShellNewtonSolver,
+    ShellSolveError,
+    minimize,
+    next_first_shift,
+)
 
 
 def bent_plate_energy(penalty_hessian: str = "assembled") -> tuple[ShellEnergy, np.ndarray]:
@@ -177,3 +183,50 @@ def test_option_validation() -> None:
         ShellNewtonOptions(stagnation_iterations=0)
     with pytest.raises(InputError, match="x0"):
         minimize(bent_plate_energy()[0], np.zeros((3, 3)))
+
+
+class DoubleWellEnergy:
+    """``W = sum_i t_i^4 / 4 - t_i^2 + 0.1 t_i`` over the 12 coordinates: Hessian ``diag(3 t^2
+    - 2)``, so at ``t = 0`` every eigenvalue is -2 (the shift must exceed 2); the tilt makes
+    the minimum ``t ~ -1.46`` unique among those the shifted steps reach from 0."""
+
+    n_vertices = 4
+
+    def value(self, x: np.ndarray) -> float:
+        t = np.asarray(x, dtype=float).reshape(-1)
+        return float(np.sum(t**4 / 4 - t**2 + 0.1 * t))
+
+    def evaluate(self, x: np.ndarray, order: int = 2, hessian: str | None = None):
+        from models.shell.energy import ShellEval
+        t = np.asarray(x, dtype=float).reshape(-1)
+        return ShellEval(value=self.value(x), grad=t**3 - 2 * t + 0.1,
+                         hess=sp.diags(3 * t**2 - 2).tocsr(), penalty_factor=None)
+
+
+def test_next_first_shift_follows_the_needed_shift_down_and_up() -> None:
+    assert next_first_shift([0.0, 1e-6, 1e-5, 10.0], 2.0) == 10.0  # climbed: start there
+    assert next_first_shift([10.0], 2.0) == 5.0  # accepted at once: one decay lower
+    assert next_first_shift([0.0], 2.0) == 0.0
+
+
+def test_a_solve_starts_its_shifts_where_the_previous_first_iteration_needed_them() -> None:
+    """Two frames from the same indefinite start: the second pays one factorisation in its
+    first iteration instead of the ladder's climb from zero, and reaches the same minimum."""
+    solver = ShellNewtonSolver(DoubleWellEnergy(), ShellNewtonOptions(rtol=1e-10))
+    x0 = np.zeros((4, 3))
+    x1, first = solver.minimize(x0)
+    x2, second = solver.minimize(x0)
+    climb = first.history[0].factorizations
+    print(f"first iteration: {climb} factorisations (tau {first.history[0].shift:.3g}), then "
+          f"{second.history[0].factorizations} (tau {second.history[0].shift:.3g}); "
+          f"its {first.iterations} / {second.iterations}, factorisations "
+          f"{first.factorizations} / {second.factorizations}")
+    assert first.converged and second.converged
+    assert climb >= 7 and first.history[0].shift > 2.0  # 0, 2e-6, ..., past |lambda| = 2
+    assert second.history[0].factorizations == 1
+    assert second.history[0].shift == first.history[0].shift
+    assert second.factorizations <= first.factorizations - (climb - 1)
+    assert np.allclose(x1, x2, atol=1e-9) and np.all(x1 < -1.4)
+    x3, third = solver.minimize(x2 + 0.05)  # a convex start: the start moves one decay down
+    assert third.converged and np.allclose(x3, x2, atol=1e-9)
+    assert third.history[0].shift == second.history[0].shift / solver.options.shift_decay

@@ -17,7 +17,7 @@ with Newton's method warm-started from the previous frame). Iteration k:
    far from the minimum (``||g|| > switch_rtol g_ref``) an iteration after a shifted one
    starts at ``tau_prev / shift_decay`` without the unshifted attempt; nearer, ``tau = 0`` is
    tried first; a solve's first iteration starts where the previous solve's first iteration
-   needed its shift (:func:`next_first_shift`; measured schedules: docs/notes/shift-schedule.md);
+   needed its shift, one ladder rung lower (measured schedules: docs/notes/shift-schedule.md);
    with ``linear_method = "multigrid"`` the Newton system is solved by CG preconditioned by
    geometric multigrid on the subdivision hierarchy (:mod:`solvers.multigrid`), and with
    ``modified.enabled`` one factorisation serves several iterations and frames;
@@ -450,19 +450,6 @@ class _LinearSystem:
                 sum(s.analysis_time for s in stats), sum(s.solve_time for s in stats))
 
 
-def next_first_shift(taus: list[float], decay: float) -> float:
-    """Where the next solve's first iteration starts, from this solve's first-iteration shifts.
-
-    A warm-started frame's first iteration meets the Hessian its target's motion made
-    indefinite, much like the frame before's: it starts at the shift that one accepted
-    (``taus[-1]``) when it had to climb to it, or one decay below it when its first attempt
-    was accepted, so the start follows the needed shift down as well as up (the
-    trust-region radius update of Nocedal & Wright, Alg. 4.1, on the shift). ``taus``: the
-    shifts tried, in order, the last one accepted.
-    """
-    return taus[-1] / decay if len(taus) == 1 else taus[-1]
-
-
 def _grad_norm(ev: EnergyEval) -> float:
     """Euclidean norm of the gradient of an order >= 1 evaluation."""
     if ev.grad is None:
@@ -697,7 +684,13 @@ class ShellNewtonSolver:
 
         The schedule is :func:`solvers.linear.shift_candidates` from ``tau_prev /
         shift_decay``, with the unshifted attempt first when ``near`` (or when that start is
-        below the schedule's first shift).
+        below the schedule's first shift). A solve's ``first`` iteration starts at least one
+        rung (``shift.growth``) below the shift the previous solve's first iteration accepted:
+        a warm-started frame's first Hessian is made indefinite by its target's motion much
+        like the frame before's, so it pays one failed attempt where it needs the same shift
+        (instead of the climb from ``tau_0``), none where it needs less (the start follows the
+        need down a rung per frame), and never starts above that rung (an overshoot costs an
+        iteration per ``shift_decay`` of the return).
         """
         assert ev.hess is not None  # order-2 evaluation
         scale = float(np.mean(np.abs(ev.hess.diagonal()))) or 1.0
@@ -715,8 +708,9 @@ class ShellNewtonSolver:
 
         restartable = first and self.options.inertia_restart and self.krylov is None
         start = self._last_shift / self.options.shift_decay
-        reports = factorize_with_shift(factorize, scale, self.options.shift,
-                                       max(start, self._first_shift) if first else start,
+        if first:
+            start = max(start, self._first_shift / self.options.shift.growth)
+        reports = factorize_with_shift(factorize, scale, self.options.shift, start,
                                        accept, zero_first=near or None,
                                        restart=self._restart(ev) if restartable else None)
         if not found:
@@ -724,7 +718,7 @@ class ShellNewtonSolver:
             return None
         self._last_shift, self._factor_age = taus[-1], 1
         if first:
-            self._first_shift = next_first_shift(taus, self.options.shift_decay)
+            self._first_shift = taus[-1]
         return self._step(x, ev, found[0], taus[-1], len(reports),
                           reports[0].negative_pivots, cg_before)
 

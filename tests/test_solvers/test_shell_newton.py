@@ -18,7 +18,6 @@ from solvers.shell_newton import (
     ShellNewtonSolver,
     ShellSolveError,
     minimize,
-    next_first_shift,
 )
 
 
@@ -203,15 +202,10 @@ class DoubleWellEnergy:
                          hess=sp.diags(3 * t**2 - 2).tocsr(), penalty_factor=None)
 
 
-def test_next_first_shift_follows_the_needed_shift_down_and_up() -> None:
-    assert next_first_shift([0.0, 1e-6, 1e-5, 10.0], 2.0) == 10.0  # climbed: start there
-    assert next_first_shift([10.0], 2.0) == 5.0  # accepted at once: one decay lower
-    assert next_first_shift([0.0], 2.0) == 0.0
-
-
 def test_a_solve_starts_its_shifts_where_the_previous_first_iteration_needed_them() -> None:
-    """Two frames from the same indefinite start: the second pays one factorisation in its
-    first iteration instead of the ladder's climb from zero, and reaches the same minimum."""
+    """Two frames from the same indefinite start: the second pays two factorisations in its
+    first iteration (one rung below, then the same shift) instead of the ladder's climb from
+    zero, and reaches the same minimum; a convex start then takes the rung below at once."""
     solver = ShellNewtonSolver(DoubleWellEnergy(), ShellNewtonOptions(rtol=1e-10))
     x0 = np.zeros((4, 3))
     x1, first = solver.minimize(x0)
@@ -223,10 +217,12 @@ def test_a_solve_starts_its_shifts_where_the_previous_first_iteration_needed_the
           f"{first.factorizations} / {second.factorizations}")
     assert first.converged and second.converged
     assert climb >= 7 and first.history[0].shift > 2.0  # 0, 2e-6, ..., past |lambda| = 2
-    assert second.history[0].factorizations == 1
-    assert second.history[0].shift == first.history[0].shift
-    assert second.factorizations <= first.factorizations - (climb - 1)
+    assert second.history[0].factorizations == 2
+    assert second.history[0].shift == pytest.approx(first.history[0].shift, rel=1e-14)
+    assert second.factorizations <= first.factorizations - (climb - 2)
     assert np.allclose(x1, x2, atol=1e-9) and np.all(x1 < -1.4)
-    x3, third = solver.minimize(x2 + 0.05)  # a convex start: the start moves one decay down
+    x3, third = solver.minimize(x2 + 0.05)  # a convex start: accepted one rung lower
+    growth = solver.options.shift.growth
     assert third.converged and np.allclose(x3, x2, atol=1e-9)
-    assert third.history[0].shift == second.history[0].shift / solver.options.shift_decay
+    assert third.history[0].factorizations == 1
+    assert third.history[0].shift == pytest.approx(second.history[0].shift / growth, rel=1e-14)

@@ -24,7 +24,8 @@ from petsc4py import PETSc  # noqa: E402
 
 __all__ = ["MPI", "PETSc", "basix", "dolfinx", "ufl", "DOLFINX_VERSION", "begin_petsc_log",
            "mesh_from_arrays",
-           "vector_space", "global_scalar", "quadrature_expression", "global_min_on_cells"]
+           "vector_space", "is_affine", "global_scalar", "quadrature_expression",
+           "global_min_on_cells"]
 
 DOLFINX_VERSION: str = dolfinx.__version__
 
@@ -70,6 +71,12 @@ def mesh_from_arrays(comm: MPI.Comm, points: object, tets: object) -> dolfinx.me
 def vector_space(mesh: dolfinx.mesh.Mesh, degree: int) -> dolfinx.fem.FunctionSpace:
     """Vector Lagrange space of ``degree`` with one 3-vector per node (block size 3)."""
     return dolfinx.fem.functionspace(mesh, ("Lagrange", degree, (mesh.geometry.dim,)))
+
+
+def is_affine(mesh: dolfinx.mesh.Mesh) -> bool:
+    """Whether the mesh's cells are straight (degree-1 coordinate element): ``grad u`` of a
+    P1 field is then constant on each cell."""
+    return all(cmap.degree == 1 for cmap in mesh.geometry.cmaps)
 
 
 def global_scalar(form: dolfinx.fem.Form) -> float:

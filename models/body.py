@@ -157,10 +157,20 @@ class BodyOptions:
     def qdegree(self) -> int:
         """Degree of the volume quadrature, ``2 * degree``.
 
-        Exact for the mass matrix and the linearised stiffness of P1 and P2; the energy, its
-        Jacobian and the det F checks share it.
+        Exact for the mass matrix and the linearised stiffness of P1 and P2; the inertia,
+        load and contact-free volume terms and the det F checks use it, the strain energy
+        :meth:`elastic_qdegree`.
         """
         return 2 * self.degree
+
+    def elastic_qdegree(self, affine: bool) -> int:
+        """Degree of the quadrature of the strain energy ``int psi(F) dX``.
+
+        On an affine P1 tetrahedron ``F = I + grad u`` is constant, so ``psi(F)`` is and one
+        point (degree 0) integrates it, its gradient and its Hessian exactly; otherwise (P2
+        or curved cells) :attr:`qdegree`.
+        """
+        return 0 if self.degree == 1 and affine else self.qdegree
 
 
 def _as(cls: type, value: Any) -> Any:

@@ -44,6 +44,7 @@ from models.backend import (
     PETSc,
     dolfinx,
     global_scalar,
+    is_affine,
     ufl,
     vector_space,
 )
@@ -182,6 +183,9 @@ class Body:
         self.contacts = [PenaltyContact(c, mesh, k) for c in self.options.contacts]
         self.dx = ufl.Measure("dx", domain=mesh,
                               metadata={"quadrature_degree": self.options.qdegree})
+        self._dx_elastic = ufl.Measure(
+            "dx", domain=mesh,
+            metadata={"quadrature_degree": self.options.elastic_qdegree(is_affine(mesh))})
         self._bcs, self._pin_constants = self._build_pins()
         self._compile_forms()
 
@@ -222,7 +226,7 @@ class Body:
         """UFL forms of the energy terms of the current state ``u``, ``v``."""
         rho, u, dx = self.material.density, self.u, self.dx
         terms = {
-            "elastic": self.material.psi(self.deformation_gradient()) * dx,
+            "elastic": self.material.psi(self.deformation_gradient()) * self._dx_elastic,
             "gravity": -(rho * ufl.dot(self.gravity, u) + ufl.dot(self.load, u)) * dx,
             "kinetic": 0.5 * rho * ufl.dot(self.v, self.v) * dx,
             "contact": sum((c.energy(u) for c in self.contacts),

@@ -149,8 +149,14 @@ def print_row(scene: str, label: str, r: dict[str, Any]) -> None:
           f"{r['frames']:>3} {sum(r['body_iterations']):>6} {sum(r['shell_iterations']):>6} "
           f"{total:>6} {failed:>6} "
           f"{shown:9.2f}{mark} {shown / n:8.2f} {r['frames_wall']:8.2f} {speedup} {memory} "
-          f"{r['process_cpu']:8.2f} {float((r['shell_energy'] or ['nan'])[-1]):12.6e} "
+          f"{r['process_cpu']:8.2f} {_last_energy(r['shell_energy']):12.6e} "
           f"{r['unconverged'] or ''}", flush=True)
+
+
+def _last_energy(values: list[float | None] | None) -> float:
+    """The last frame's shell energy, NaN for a scene without a shell."""
+    last = values[-1] if values else None
+    return float(last) if last is not None else float("nan")
 
 
 HEADER = (f"{'scene':>18} {'code':>8} {'np':>2} {'method':>9} {'thr':>3} {'frm':>3} "

@@ -74,8 +74,10 @@ def vector_space(mesh: dolfinx.mesh.Mesh, degree: int) -> dolfinx.fem.FunctionSp
 
 
 def is_affine(mesh: dolfinx.mesh.Mesh) -> bool:
-    """Whether the mesh's cells are straight (degree-1 coordinate element): ``grad u`` of a
-    P1 field is then constant on each cell."""
+    """Whether the mesh's cells are straight (a degree-1 coordinate element).
+
+    On straight cells ``grad u`` of a P1 field is constant on each cell.
+    """
     return all(cmap.degree == 1 for cmap in mesh.geometry.cmaps)
 
 

@@ -549,6 +549,24 @@ class ShellNewtonSolver:
         self._mode_now = ""
         self._target = 0.0  # gradient tolerance of the running solve (multigrid forcing)
 
+    @property
+    def shift_state(self) -> np.ndarray:
+        """The shift schedule's memory across solves: ``[tau_last, tau_first]``.
+
+        ``tau_last``: the last accepted shift (the next iteration starts from ``tau_last /
+        shift_decay``); ``tau_first``: the one the last solve's first iteration accepted (the
+        next solve's first iteration starts a rung below it). A run resumed from a checkpoint
+        sets it back to take the same steps as the run it continues.
+        """
+        return np.array([self._last_shift, self._first_shift])
+
+    @shift_state.setter
+    def shift_state(self, value: np.ndarray) -> None:
+        last, first = (float(v) for v in np.asarray(value, dtype=np.float64).reshape(2))
+        if not (np.isfinite(last) and np.isfinite(first) and last >= 0.0 and first >= 0.0):
+            raise InputError(f"shift_state: expected two finite shifts >= 0, got {value!r}")
+        self._last_shift, self._first_shift = last, first
+
     def _reuse_next(self) -> bool:
         """Whether the next iteration will try the previous factorisation (modified Newton)."""
         mod = self.options.modified

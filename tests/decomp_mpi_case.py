@@ -24,7 +24,7 @@ from solvers.decomposition.parallel import ParallelOptions, parallel_block_solve
 from solvers.decomposition.patch_energy import ShellProblem
 from solvers.decomposition.split_newton import SplitNewtonSolver
 from solvers.linear import LinearSolverOptions
-from solvers.shell_newton import ShellNewtonOptions, minimize
+from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver, minimize
 
 
 def _args() -> argparse.Namespace:
@@ -59,8 +59,10 @@ def _split(problem: ShellProblem, partition: np.ndarray, x0: np.ndarray, comm: M
     y2, x2_start = _next_frame(problem, x)
     solver.set_target(y2)
     x2, rep2 = solver.minimize(x2_start)  # second frame: the analysis is reused
+    serial = ShellNewtonSolver(energy, options)  # the same two frames on one solver: its
+    serial.minimize(x0)  # shift memory from frame 1 is the split solver's
     energy.set_target(y2)
-    x2_ref, rep2_ref = minimize(energy, x2_start, options)
+    x2_ref, rep2_ref = serial.minimize(x2_start)
     info = solver.info()
     entries = comm.gather(info.local_matrix_entries, root=0)
     owned = comm.allreduce(info.owned_vertices, op=MPI.SUM)

@@ -378,6 +378,8 @@ class Shell:
         normals: ``(n, 3)`` rest vertex normals (imperfection direction).
         edge_length: mean rest edge length [m].
         gradient_scale: reference gradient norm of the relative tolerance (0 = not yet set).
+        shifts: the Newton's shift memory after the last solve (``shift_state`` of the
+            solver that ran it; checkpointed).
         facts: set-up numbers for the summary.
         force: ``(n, 3)`` penalty force ``f`` on the target, ``B^T f`` on the body (two-way
             coupling; zero otherwise).
@@ -401,6 +403,7 @@ class Shell:
     normals: np.ndarray
     edge_length: float
     gradient_scale: float = 0.0
+    shifts: np.ndarray = field(default_factory=lambda: np.zeros(2))
     facts: dict[str, Any] = field(default_factory=dict)
     force: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     coupling: PenaltyCoupling | None = None

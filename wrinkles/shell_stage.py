@@ -71,11 +71,31 @@ def scale_tolerance(shell: Shell, solver: ShellNewtonSolver | SplitNewtonSolver,
     solver.options = dataclasses.replace(options, gradient_scale=shell.gradient_scale or 1.0)
 
 
-def _minimize(shell: Shell, x0: np.ndarray) -> tuple[np.ndarray, ShellSolveReport]:
-    """Set the tolerance scale and minimise; ShellSolveError becomes a plain SolverError."""
-    scale_tolerance(shell, shell.solver, x0, shell.options.internals.newton)
+def minimize_from_state(shell: Shell, solver: ShellNewtonSolver | SplitNewtonSolver,
+                        x0: np.ndarray, options: ShellNewtonOptions
+                        ) -> tuple[np.ndarray, ShellSolveReport]:
+    """Minimise from ``x0`` with the shell's solver state: tolerance reference, shift memory.
+
+    :func:`scale_tolerance`, then the solver's shift memory is set from ``shell.shifts`` and,
+    however the solve ends, written back: the checkpoint carries it, so a resumed run takes
+    the steps of the run it continues.
+
+    Raises:
+        ShellSolveError: as ``solver.minimize``.
+
+    """
+    scale_tolerance(shell, solver, x0, options)
+    solver.shift_state = shell.shifts
     try:
-        return shell.solver.minimize(x0)
+        return solver.minimize(x0)
+    finally:
+        shell.shifts = solver.shift_state
+
+
+def _minimize(shell: Shell, x0: np.ndarray) -> tuple[np.ndarray, ShellSolveReport]:
+    """Minimise from the shell's state; ShellSolveError becomes a plain SolverError."""
+    try:
+        return minimize_from_state(shell, shell.solver, x0, shell.options.internals.newton)
     except ShellSolveError as exc:
         raise SolverError(f"shell solve failed: {exc}") from None
 
@@ -191,8 +211,9 @@ def shell_record(shell: Shell, report: ShellSolveReport) -> StageRecord:
             "shell_time_solve": report.time_solve, "shell_time_total": report.time_total}
 
 
-STATE_ARRAYS: tuple[str, ...] = ("positions", "target", "gradient_scale", "force")
-"""Checkpoint arrays of the shell: x, y, the tolerance reference and the penalty force."""
+STATE_ARRAYS: tuple[str, ...] = ("positions", "target", "gradient_scale", "force", "shifts")
+"""Checkpoint arrays of the shell: x, y, the tolerance reference, the penalty force and the
+Newton's shift memory (absent from checkpoints written before it existed: zeros)."""
 
 
 def shell_arrays(shell: Shell) -> dict[str, np.ndarray]:
@@ -201,10 +222,11 @@ def shell_arrays(shell: Shell) -> dict[str, np.ndarray]:
     The warm start ``x_0 = x + (y_new - y) + eta_k`` needs ``x`` and the previous target
     ``y``; the relative Newton tolerance needs the reference ``gradient_scale``; two-way
     coupling keeps the penalty force ``force`` (its share on pinned body nodes counts in the
-    pins' reaction).
+    pins' reaction); the shifts of the next solve start from ``shifts``.
     """
     return {"positions": shell.x, "target": shell.y,
-            "gradient_scale": np.array([shell.gradient_scale]), "force": shell.force}
+            "gradient_scale": np.array([shell.gradient_scale]), "force": shell.force,
+            "shifts": np.array(shell.shifts)}
 
 
 def restore_shell(shell: Shell, arrays: Mapping[str, np.ndarray]) -> None:
@@ -214,14 +236,16 @@ def restore_shell(shell: Shell, arrays: Mapping[str, np.ndarray]) -> None:
         InputError: an array is missing or has another shape (another shell).
 
     """
+    arrays = {"shifts": np.zeros(2), **arrays}
     for name in STATE_ARRAYS:
-        expected = (1,) if name == "gradient_scale" else shell.rest.shape
+        expected = {"gradient_scale": (1,), "shifts": (2,)}.get(name, shell.rest.shape)
         if name not in arrays or np.shape(arrays[name]) != expected:
             raise InputError(f"checkpoint: shell array {name!r} is missing or not of shape "
                              f"{expected} (another [shell] table?)")
     shell.x, shell.y = np.array(arrays["positions"]), np.array(arrays["target"])
     shell.force = np.array(arrays["force"])
     shell.gradient_scale = float(arrays["gradient_scale"][0])
+    shell.shifts = np.array(arrays["shifts"], dtype=np.float64)
 
 
 def one_way_stage(shell: Shell, body: Body, write: Writer) -> Callable[[int], StageRecord]:
@@ -236,5 +260,5 @@ def one_way_stage(shell: Shell, body: Body, write: Writer) -> Callable[[int], St
 
 
 __all__ = ["StageRecord", "admissible_start", "deviation", "imperfection", "one_way_stage",
-           "restore_shell", "scale_tolerance", "shell_arrays", "shell_record", "solve_shell",
-           "target", "warm_start"]
+           "minimize_from_state", "restore_shell", "scale_tolerance", "shell_arrays",
+           "shell_record", "solve_shell", "target", "warm_start"]

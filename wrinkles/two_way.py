@@ -38,7 +38,7 @@ from wrinkles.shell_output import Writer
 from wrinkles.shell_setup import Shell
 from wrinkles.shell_stage import (
     StageRecord,
-    scale_tolerance,
+    minimize_from_state,
     shell_record,
     solve_shell,
     target,
@@ -120,9 +120,8 @@ class CoupledStep:
             z0 = self._start(energy)
         except SolverError:
             return NewtonResult(False, 0, 0, math.nan, math.inf, min_det)
-        scale_tolerance(self.shell, solver, z0, self.options)
         try:
-            z, report = solver.minimize(z0)
+            z, report = minimize_from_state(self.shell, solver, z0, self.options)
         except ShellSolveError as exc:
             z, report = None, exc.report
         self.reports.append(report)

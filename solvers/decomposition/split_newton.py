@@ -472,6 +472,15 @@ class SplitNewtonSolver:
         self._method = value.linear_method
         self.newton.options = replace(value, linear_method="direct", inertia_restart=False)
 
+    @property
+    def shift_state(self) -> np.ndarray:
+        """The Newton's shift memory across solves (:attr:`ShellNewtonSolver.shift_state`)."""
+        return self.newton.shift_state
+
+    @shift_state.setter
+    def shift_state(self, value: np.ndarray) -> None:
+        self.newton.shift_state = value
+
     def set_target(self, y: np.ndarray) -> None:
         """Set a new penalty target (n, 3) for the next frame (the same on every rank)."""
         self.energy.target = np.array(y, dtype=np.float64)

@@ -72,7 +72,8 @@ def test_one_point_strain_energy_of_p1_equals_the_degree_two_quadrature(rng):
     assert body.options.elastic_qdegree(affine=False) == body.options.qdegree == 2
     w, du = ufl.TestFunction(body.V), ufl.TrialFunction(body.V)
     dx4 = ufl.Measure("dx", domain=mesh, metadata={"quadrature_degree": 2})
-    one, four = body._energy_terms()["elastic"], body.material.psi(body.deformation_gradient()) * dx4
+    one = body._energy_terms()["elastic"]
+    four = body.material.psi(body.deformation_gradient()) * dx4
     values = []
     for energy in (one, four):
         gradient = ufl.derivative(energy, body.u, w)

@@ -4,9 +4,10 @@ The demo scene (compressed bar, 1000x skin, one-way coupling), coarse: one subdi
 6 frames of 3 % compression. The run is killed at random moments after >= 2 completed frames
 (in the shell Newton solve, the shell or body series transaction, or the checkpoint write),
 then resumed. The checkpoint carries the shell state (positions, previous target, tolerance
-reference, coupling force), the body and shell series drop the steps written after it, so the
-resumed run takes the same iterates as the straight run: shell displacements, body and shell
-energies agree to solver tolerance (they are in fact bitwise equal).
+reference, coupling force, the Newton's shift memory), the body and shell series drop the
+steps written after it, so the resumed run takes the same iterates as the straight run:
+shell displacements, body and shell energies agree to solver tolerance (they are in fact
+bitwise equal).
 """
 
 from __future__ import annotations

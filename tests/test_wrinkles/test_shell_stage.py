@@ -105,3 +105,28 @@ def test_compressed_bar_wrinkles(tmp_path, stretched):
     # measured ratio 35: compression wrinkles the lateral faces, stretch does not
     assert lateral_normal_deviation(run.shell) > 15.0 * lateral_normal_deviation(stretched.shell)
     assert records[-1]["shell_terms"]["bending"] > 0.0
+
+
+def test_shell_checkpoint_arrays_carry_the_shift_memory(stretched):
+    """``shell_arrays`` -> ``restore_shell`` gives the shell back with the Newton's shift
+    memory; a checkpoint written before the memory existed restores it as zeros (the steps of
+    the code that wrote it); a wrong shape is refused naming the array."""
+    from meshes.errors import InputError
+    from wrinkles.shell_stage import restore_shell, shell_arrays
+
+    shell = stretched.shell
+    assert shell is not None and shell.shifts.shape == (2,)
+    saved = shell_arrays(shell)
+    shell.shifts = np.array([3.0, 7.0])
+    restore_shell(shell, {k: v for k, v in saved.items()})
+    assert np.array_equal(shell.shifts, saved["shifts"])
+    restore_shell(shell, {k: v for k, v in saved.items() if k != "shifts"})
+    assert np.array_equal(shell.shifts, np.zeros(2))
+    with pytest.raises(InputError, match="'shifts'"):
+        restore_shell(shell, {**saved, "shifts": np.zeros(3)})
+    kept = shell.solver.shift_state
+    shell.solver.shift_state = np.array([2.0, 5.0])
+    assert np.array_equal(shell.solver.shift_state, [2.0, 5.0])
+    with pytest.raises(InputError, match="shift_state"):
+        shell.solver.shift_state = np.array([np.nan, 1.0])
+    shell.solver.shift_state, shell.shifts = kept, saved["shifts"]  # the module's fixture

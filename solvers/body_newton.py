@@ -122,7 +122,7 @@ class NewtonOptions:
     def matrix_kind(self) -> str:
         """PETSc type of the Jacobian: 3 x 3 blocks (``"baij"``) for the MUMPS LU.
 
-        One insertion per node pair instead of nine entries makes the assembly several times
+        One insertion per node pair instead of nine entries makes the insertion several times
         cheaper (docs/notes/body-assembly.md); MUMPS factorises block matrices as they are.
         SuperLU_dist and solvers chosen by expert options (``petsc``) keep ``"aij"``.
         """

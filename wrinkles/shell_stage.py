@@ -232,6 +232,9 @@ def shell_arrays(shell: Shell) -> dict[str, np.ndarray]:
 def restore_shell(shell: Shell, arrays: Mapping[str, np.ndarray]) -> None:
     """Set the shell state from :func:`shell_arrays` of a checkpoint.
 
+    A checkpoint without ``shifts`` (written before the shift memory existed) restores it as
+    zeros, the steps of the code that wrote it.
+
     Raises:
         InputError: an array is missing or has another shape (another shell).
 

@@ -61,7 +61,7 @@ def choose_linear_method(method: str, vertices: int, levels: int) -> ConcreteMet
     return "direct" if method == "direct" else "multigrid"
 
 
-THREADS_FROM_VERTICES: int = 5000
+THREADS_FROM_VERTICES: int = 20000
 """Shell vertex count from which "auto" threads use every available core of a serial run."""
 
 

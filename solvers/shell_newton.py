@@ -63,6 +63,7 @@ from solvers.multigrid import (
     MultigridOptions,
     NewtonSystem,
     ShellHierarchy,
+    shifted_product,
 )
 
 LINEAR_METHODS: tuple[str, ...] = ("direct", "multigrid")
@@ -747,14 +748,10 @@ class ShellNewtonSolver:
         few extra negative pivots (:mod:`solvers.inertia_shift`); the full Hessian is ``A +
         G^T G`` when the penalty comes as the factor G.
         """
-        hess, g = ev.hess, ev.penalty_factor
-        assert hess is not None  # order-2 evaluation
-
-        def product(v: np.ndarray) -> np.ndarray:
-            out = hess @ v
-            return out + g.T @ (g @ v) if g is not None else out
-
-        return lambda report: restart_ladder(report, product, hess.shape[0], self.options.shift)
+        assert ev.hess is not None  # order-2 evaluation
+        n = ev.hess.shape[0]
+        return lambda report: restart_ladder(report, lambda v: shifted_product(ev, 0.0, v), n,
+                                             self.options.shift)
 
     def _direction(self, x: np.ndarray, ev: EnergyEval, timers: _Timers) -> _Direction | None:
         """Solve with the current factorisation; descent test and line search."""

@@ -118,7 +118,7 @@ def test_shell_checkpoint_arrays_carry_the_shift_memory(stretched):
     assert shell is not None and shell.shifts.shape == (2,)
     saved = shell_arrays(shell)
     shell.shifts = np.array([3.0, 7.0])
-    restore_shell(shell, {k: v for k, v in saved.items()})
+    restore_shell(shell, saved)
     assert np.array_equal(shell.shifts, saved["shifts"])
     restore_shell(shell, {k: v for k, v in saved.items() if k != "shifts"})
     assert np.array_equal(shell.shifts, np.zeros(2))

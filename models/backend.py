@@ -9,6 +9,9 @@ upgrade touches one file.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 import dolfinx_solver  # noqa: F401  (must precede mpi4py, petsc4py and dolfinx)
 
 import basix  # noqa: E402
@@ -25,7 +28,7 @@ from petsc4py import PETSc  # noqa: E402
 __all__ = ["MPI", "PETSc", "basix", "dolfinx", "ufl", "DOLFINX_VERSION", "begin_petsc_log",
            "mesh_from_arrays",
            "vector_space", "is_affine", "global_scalar", "quadrature_expression",
-           "global_min_on_cells"]
+           "global_min_on_cells", "exterior_facet_domain", "with_facet_domains"]
 
 DOLFINX_VERSION: str = dolfinx.__version__
 
@@ -110,3 +113,66 @@ def global_min_on_cells(expression: dolfinx.fem.Expression, mesh: dolfinx.mesh.M
     if not np.all(np.isfinite(values)):
         local = float("-inf")
     return float(mesh.comm.allreduce(local, op=MPI.MIN))
+
+
+def exterior_facet_domain(mesh: dolfinx.mesh.Mesh, facets: object) -> object:
+    """Return the integration entities of exterior facets: ``(cell, local facet)`` pairs, flattened.
+
+    Args:
+        mesh: The mesh (its facet-cell connectivity is created here).
+        facets: Indices of exterior facets owned by this rank.
+
+    Returns:
+        An int32 array ``[c_0, f_0, c_1, f_1, ...]``, the form of a ``ds`` subdomain's entities
+        (``ufl.Measure("ds", subdomain_data=[(id, entities)])``, :func:`with_facet_domains`).
+
+    """
+    import numpy as np
+
+    tdim = mesh.topology.dim
+    mesh.topology.create_connectivity(tdim - 1, tdim)
+    mesh.topology.create_connectivity(tdim, tdim - 1)
+    return np.asarray(dolfinx.fem.compute_integration_domains(
+        dolfinx.fem.IntegralType.exterior_facet, mesh.topology,
+        np.asarray(facets, dtype=np.int32)), dtype=np.int32)
+
+
+def with_facet_domains(form: dolfinx.fem.Form,
+                       domains: Mapping[int, object]) -> dolfinx.fem.Form:
+    """Return the compiled ``form`` with the entities of its exterior-facet subdomains replaced.
+
+    The generated kernels, coefficients and constants are shared with ``form`` (no UFL
+    processing, no JIT): only the lists of ``(cell, local facet)`` pairs of the subdomain ids
+    in ``domains`` change (:func:`exterior_facet_domain`); the other integrals keep theirs.
+    The form's exterior-facet integrals must all carry an id present in ``domains``.
+
+    Raises:
+        ValueError: ``form`` has an exterior-facet integral whose id is not in ``domains``.
+
+    """
+    cpp = form._cpp_object
+    facet = dolfinx.fem.IntegralType.exterior_facet
+    subdomains: dict[object, list[tuple[int, object]]] = {}
+    for kind in cpp.integral_types:
+        ids = sorted({int(i) for i in _integral_ids(form, kind)})
+        if kind == facet:
+            missing = [i for i in ids if i not in domains]
+            if missing:
+                raise ValueError(f"with_facet_domains: no entities for ds({missing[0]})")
+            subdomains[kind] = [(i, domains[i]) for i in ids]
+        else:
+            subdomains[kind] = [(i, cpp.domains(kind, i)) for i in ids if i >= 0]
+    module: Any = form.module  # one compiled form: one CFFI module
+    ptr = module.ffi.cast("uintptr_t", module.ffi.addressof(form.ufcx_form))
+    rebuilt = dolfinx.fem.forms.form_cpp_class(form.dtype)(
+        [ptr], cpp.function_spaces, cpp.coefficients, cpp.constants, subdomains, [], cpp.mesh)
+    return dolfinx.fem.Form(rebuilt, form.ufcx_form, form.code, form.module)
+
+
+def _integral_ids(form: dolfinx.fem.Form, kind: object) -> list[int]:
+    """Return the subdomain ids of the integrals of type ``kind`` in the compiled form."""
+    ufcx = form.ufcx_form
+    offsets = ufcx.form_integral_offsets
+    kind_index = int(kind.value)  # type: ignore[attr-defined]
+    return [int(ufcx.form_integral_ids[j]) for j in range(offsets[kind_index],
+                                                         offsets[kind_index + 1])]

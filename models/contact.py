@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from meshes.errors import InputError
-from models.backend import MPI, dolfinx, ufl
+from models.backend import MPI, dolfinx, exterior_facet_domain, ufl
 
 OBSTACLES: tuple[str, ...] = ("plane", "sphere")
 """Obstacle shapes."""
@@ -101,6 +101,45 @@ def penalty_stiffness(stiffness: float | None, young: float, h_min: float) -> fl
     return float(stiffness)
 
 
+def exterior_facets(mesh: Any) -> np.ndarray:
+    """Return the indices of the exterior facets of ``mesh`` owned by this rank."""
+    tdim = mesh.topology.dim
+    mesh.topology.create_connectivity(tdim - 1, tdim)
+    facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)
+    owned = mesh.topology.index_map(tdim - 1).size_local
+    return np.asarray(facets[facets < owned], dtype=np.int32)
+
+
+@dataclass(frozen=True)
+class BoundaryTriangles:
+    """Exterior facets of a tetrahedral body as triangles of their corners.
+
+    Attributes:
+        facets: The facets (mesh facet indices, owned by this rank).
+        dofs: ``(m, 3)`` block index of each corner's displacement in ``V`` (a tetrahedron's
+            first four nodes are its vertices, in the geometry and in a P1 or P2 ``V``).
+        rest: ``(m, 3, 3)`` corner rest positions [m].
+
+    """
+
+    facets: np.ndarray
+    dofs: np.ndarray
+    rest: np.ndarray
+
+    @classmethod
+    def of(cls, mesh: Any, V: Any, facets: np.ndarray) -> BoundaryTriangles:
+        """Return the triangles of ``facets`` (exterior, owned) of ``mesh`` with ``V``'s dofs."""
+        tdim = mesh.topology.dim
+        nodes = dolfinx.mesh.entities_to_geometry(mesh, tdim - 1, facets)[:, :3]
+        node_dof = np.zeros(mesh.geometry.x.shape[0], dtype=np.int64)
+        node_dof[mesh.geometry.dofmaps[0][:, :4].reshape(-1)] = V.dofmap.list[:, :4].reshape(-1)
+        return cls(np.asarray(facets), node_dof[nodes], mesh.geometry.x[nodes])
+
+    def deformed(self, u: np.ndarray) -> np.ndarray:
+        """Return the corners ``X + u`` (m, 3, 3) [m] of the displacement dof array ``u``."""
+        return np.asarray(self.rest + np.asarray(u).reshape(-1, 3)[self.dofs])
+
+
 def min_cell_size(mesh: Any) -> float:
     """Smallest cell diameter of ``mesh`` over all ranks [m]."""
     tdim = mesh.topology.dim
@@ -112,23 +151,57 @@ def min_cell_size(mesh: Any) -> float:
 class PenaltyContact:
     """One obstacle's penalty energy and reaction force as UFL forms of the displacement.
 
+    The penalty is integrated over the exterior-facet subdomain ``facet_id`` of ``facets``
+    (the same list for every obstacle of a body, as UFL requires of one form): all exterior
+    facets in the forms compiled from the UFL, a subset in a solve that restricts them
+    (:func:`models.backend.with_facet_domains`; the facets left out must have ``g >= 0``
+    at every quadrature point, where the integrand is exactly zero).
+
     Args:
         options: The obstacle.
         mesh: The body's mesh.
         stiffness: Penalty stiffness k [Pa/m] (:func:`penalty_stiffness`).
+        facet_id: The ``ds`` subdomain id of this obstacle's penalty (>= 0).
+        facets: ``[(id, entities), ...]``: every obstacle's id with all exterior facets of the
+            rank (:func:`models.backend.exterior_facet_domain`); None: this obstacle alone.
 
     """
 
-    def __init__(self, options: ContactOptions, mesh: Any, stiffness: float) -> None:
+    def __init__(self, options: ContactOptions, mesh: Any, stiffness: float, facet_id: int = 0,
+                 facets: list[tuple[int, Any]] | None = None) -> None:
         self.options = options
         self.stiffness = dolfinx.fem.Constant(mesh, float(stiffness))
         self.point = dolfinx.fem.Constant(mesh, np.array(options.point))
         self.normal = dolfinx.fem.Constant(mesh, np.array(options.normal))
         self.center = dolfinx.fem.Constant(mesh, np.array(options.point))
         self.radius = dolfinx.fem.Constant(mesh, float(options.radius))
-        self.ds = ufl.Measure("ds", domain=mesh,
+        self.facet_id = int(facet_id)
+        if facets is None:
+            facets = [(self.facet_id, exterior_facet_domain(mesh, exterior_facets(mesh)))]
+        self.ds = ufl.Measure("ds", domain=mesh, subdomain_data=facets,
+                              subdomain_id=self.facet_id,
                               metadata={"quadrature_degree": options.quadrature_degree})
         self._X = ufl.SpatialCoordinate(mesh)
+
+    def gap_lower_bounds(self, points: np.ndarray) -> np.ndarray:
+        """Return a lower bound of the gap ``g`` over each facet from its corners [m].
+
+        Args:
+            points: ``(facets, corners, 3)`` current positions ``X + u`` of facet corners.
+
+        Returns:
+            ``(facets,)``: the gap's minimum over the flat triangle of the corners, exact
+            for P1 (the plane's gap is linear on it: its smallest corner gap; the sphere's
+            is the distance from the centre to the triangle minus the radius). A curved (P2)
+            facet may go lower.
+
+        """
+        p = np.asarray(points, dtype=np.float64)
+        if self.options.obstacle == "plane":
+            gaps = (p - np.asarray(self.point.value)) @ np.asarray(self.normal.value)
+            return np.asarray(gaps.min(axis=1))
+        return np.asarray(point_triangle_distance(np.asarray(self.center.value), p)
+                          - float(self.radius.value))
 
     def set_center(self, center: Any) -> None:
         """Move the sphere's centre [m] (takes effect at the next solve)."""
@@ -176,3 +249,28 @@ class PenaltyContact:
         K = self.stiffness * (inside * ufl.outer(n, n)
                               + neg / d * (ufl.Identity(3) - ufl.outer(n, n)))
         return [[K[i, j] * self.ds for j in range(3)] for i in range(3)]
+
+
+def point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Distance from point ``p`` (3,) to each triangle of ``tri`` (m, 3, 3) [m].
+
+    Inside the prism over the triangle: distance to its plane; else the nearest of the three
+    edges (segments).
+    """
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    height = np.einsum("ij,ij->i", p - a, n)
+    q = p - height[:, None] * n
+    inside = np.ones(len(tri), dtype=bool)
+    for s, e in ((a, b), (b, c), (c, a)):
+        inside &= np.einsum("ij,ij->i", np.cross(e - s, q - s), n) >= 0.0
+    edges = np.min([segment_distance(p, s, e) for s, e in ((a, b), (b, c), (c, a))], axis=0)
+    return np.where(inside, np.abs(height), edges)
+
+
+def segment_distance(p: np.ndarray, s: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """Distance from ``p`` (3,) to the segments ``s_i e_i`` ((m, 3) each) [m]."""
+    d = e - s
+    t = np.clip(np.einsum("ij,ij->i", p - s, d) / np.einsum("ij,ij->i", d, d), 0.0, 1.0)
+    return np.asarray(np.linalg.norm(p - (s + t[:, None] * d), axis=1))

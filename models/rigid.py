@@ -46,8 +46,14 @@ from typing import Any
 import numpy as np
 
 from meshes.errors import InputError
-from models.backend import MPI, dolfinx
-from models.contact import ContactOptions, vector3
+from models.backend import MPI
+from models.contact import (
+    BoundaryTriangles,
+    ContactOptions,
+    exterior_facets,
+    point_triangle_distance,
+    vector3,
+)
 
 SCHEMES: dict[str, tuple[float, float, float]] = {
     "implicit_euler": (1.0, 1.0, 0.0),
@@ -293,22 +299,12 @@ class BoundaryFacets:
     """
 
     def __init__(self, body: Any) -> None:
-        mesh = body.mesh
-        tdim = mesh.topology.dim
-        mesh.topology.create_connectivity(tdim - 1, tdim)
-        facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)
-        self.nodes = dolfinx.mesh.entities_to_geometry(mesh, tdim - 1, facets)[:, :3]
-        node_dof = np.zeros(mesh.geometry.x.shape[0], dtype=np.int64)
-        vertex_dofs = body.V.dofmap.list[:, :4].reshape(-1)
-        node_dof[mesh.geometry.dofmaps[0][:, :4].reshape(-1)] = vertex_dofs
-        self.dofs = node_dof[self.nodes]
-        self.X = mesh.geometry.x[self.nodes]
-        self.body, self.comm = body, mesh.comm
+        self.surface = BoundaryTriangles.of(body.mesh, body.V, exterior_facets(body.mesh))
+        self.body, self.comm = body, body.mesh.comm
 
     def triangles(self) -> np.ndarray:
         """Deformed triangles (m, 3, 3) [m]."""
-        u = self.body.u.x.array.reshape(-1, 3)
-        return np.asarray(self.X + u[self.dofs])
+        return self.surface.deformed(self.body.u.x.array)
 
     def penetration(self, centers: np.ndarray, radii: np.ndarray) -> np.ndarray:
         """Penetration of each sphere as a fraction of its radius (collective) [-], (N,).
@@ -324,31 +320,6 @@ class BoundaryFacets:
         return np.asarray(np.maximum(0.0, radii - dist) / radii)
 
 
-def point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """Distance from point ``p`` (3,) to each triangle of ``tri`` (m, 3, 3) [m].
-
-    Inside the prism over the triangle: distance to its plane; else the nearest of the three
-    edges (segments).
-    """
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    n = np.cross(b - a, c - a)
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    height = np.einsum("ij,ij->i", p - a, n)
-    q = p - height[:, None] * n
-    inside = np.ones(len(tri), dtype=bool)
-    for s, e in ((a, b), (b, c), (c, a)):
-        inside &= np.einsum("ij,ij->i", np.cross(e - s, q - s), n) >= 0.0
-    edges = np.min([segment_distance(p, s, e) for s, e in ((a, b), (b, c), (c, a))], axis=0)
-    return np.where(inside, np.abs(height), edges)
-
-
-def segment_distance(p: np.ndarray, s: np.ndarray, e: np.ndarray) -> np.ndarray:
-    """Distance from ``p`` (3,) to the segments ``s_i e_i`` ((m, 3) each) [m]."""
-    d = e - s
-    t = np.clip(np.einsum("ij,ij->i", p - s, d) / np.einsum("ij,ij->i", d, d), 0.0, 1.0)
-    return np.asarray(np.linalg.norm(p - (s + t[:, None] * d), axis=1))
-
-
 __all__ = ["BallState", "Ledger", "RigidBallOptions", "RigidCouplingOptions",
            "RigidOptions", "RigidStepInfo", "advance", "impulse",
-           "initial_state", "point_triangle_distance", "predict", "scheme"]
+           "initial_state", "predict", "scheme"]

@@ -43,16 +43,18 @@ from models.backend import (
     MPI,
     PETSc,
     dolfinx,
+    exterior_facet_domain,
     global_scalar,
     is_affine,
     ufl,
     vector_space,
 )
 from models.body import NEWMARK_BETA, NEWMARK_GAMMA, BodyOptions, PinSpec
-from models.contact import PenaltyContact, min_cell_size, penalty_stiffness
+from models.contact import PenaltyContact, exterior_facets, min_cell_size, penalty_stiffness
 from models.materials import Material
 from models.quadratic import QuadraticTerm
 from solvers.body_newton import EnergyNewton, NewtonOptions, NewtonResult
+from solvers.contact_set import ActiveFacets, ContactSetStats
 
 
 class _PinValue:
@@ -180,7 +182,12 @@ class Body:
         self._interface: Any = None  # set_interface_force
         k = (penalty_stiffness(self.options.contact_stiffness, material.E, min_cell_size(mesh))
              if self.options.contacts else 0.0)
-        self.contacts = [PenaltyContact(c, mesh, k) for c in self.options.contacts]
+        facets, self._facets = None, exterior_facets(mesh)
+        if self.options.contacts:
+            pairs = exterior_facet_domain(mesh, self._facets)
+            facets = [(i, pairs) for i in range(len(self.options.contacts))]
+        self.contacts = [PenaltyContact(c, mesh, k, i, facets)
+                         for i, c in enumerate(self.options.contacts)]
         self.dx = ufl.Measure("dx", domain=mesh,
                               metadata={"quadrature_degree": self.options.qdegree})
         self._dx_elastic = ufl.Measure(
@@ -250,6 +257,8 @@ class Body:
                                              self.newton, scale))
         self._reaction = [[dolfinx.fem.form(f) for f in c.force_forms(self.u)]
                           for c in self.contacts]
+        self._active = (ActiveFacets(self.mesh, self.V, self.contacts, self._facets,
+                                     self._forms["contact"]) if self.contacts else None)
         self._static_ufl = static
 
     def _energy_scale(self) -> float:
@@ -497,7 +506,7 @@ class Body:
             solver = self._dynamic_solver  # type: ignore[assignment]
         else:
             self._static_guess(h, guess)
-        result = self._solve(solver)
+        result = self._solve_on_facets(solver)
         if result.converged:
             if dynamic:
                 self._update_kinematics(h)
@@ -505,6 +514,33 @@ class Body:
                 self.rate.x.array[:] = (self.u.x.array - self._u_n.x.array) / h
             self.t = t_new
         return result
+
+    def _solve_on_facets(self, solver: EnergyNewton) -> NewtonResult:
+        """Solve with each obstacle's penalty on its candidate facets (:mod:`solvers.contact_set`).
+
+        The solve starts from the current ``u`` (the guess, set after ``u_n``). If it fails or
+        a facet left out is penetrated at its end, it is repeated from the same start with
+        the penalties over all exterior facets.
+        """
+        if self._active is None:
+            return self._solve(solver)
+        start = self.u.x.array.copy()
+        solver.set_facet_domains(self._active.select(start, self._u_n.x.array))
+        try:
+            result = self._solve(solver)
+            passed = result.converged and self._active.outside() == 0.0
+        finally:
+            solver.set_facet_domains(None)
+        if passed:
+            return result
+        self._active.stats.retries += 1
+        self.u.x.array[:] = start
+        return self._solve(solver)
+
+    @property
+    def contact_set(self) -> ContactSetStats | None:
+        """Counters of the contact facet selection (None without obstacles)."""
+        return None if self._active is None else self._active.stats
 
     def _static_guess(self, h: float, guess: np.ndarray | None = None) -> None:
         """Set the initial guess of a load step: ``u + h du/dt`` of the last step, pins applied.

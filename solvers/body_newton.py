@@ -54,6 +54,7 @@ from models.backend import (
     global_scalar,
     quadrature_expression,
     ufl,
+    with_facet_domains,
 )
 from models.quadratic import QuadraticTerm
 
@@ -210,13 +211,14 @@ class EnergyNewton:
         self.u = u
         mesh = u.function_space.mesh
         self._mesh = mesh
-        self._energy = dolfinx.fem.form(energy)
         self._det_f = quadrature_expression(det_f, mesh, quadrature_degree)
         residual = ufl.derivative(energy, u, ufl.TestFunction(u.function_space))
         jacobian = ufl.derivative(residual, u, ufl.TrialFunction(u.function_space))
+        self._full = tuple(dolfinx.fem.form(f) for f in (energy, residual, jacobian))
+        self._energy, self._F, self._J = self._full
         prefix = f"body_newton_{next(_COUNTER)}_"
         self.problem = dolfinx.fem.petsc.NonlinearProblem(
-            residual, u, bcs=bcs, J=jacobian, petsc_options_prefix=prefix,
+            self._F, u, bcs=bcs, J=self._J, petsc_options_prefix=prefix,
             petsc_options=self.options.petsc_options(), kind=self.options.matrix_kind)
         self.problem.solver.setObjective(self._objective)  # type: ignore[arg-type]
         if self.options.line_search and not self.options.uses_petsc_bt:
@@ -290,10 +292,25 @@ class EnergyNewton:
         """Replace dolfinx's SNES residual by :meth:`_residual` (dolfinx's assembly + term)."""
         snes, problem, bcs = self.problem.solver, self.problem, self._bcs
         self._assemble_residual = lambda x, b: dolfinx.fem.petsc.assemble_residual(
-            snes, x, b, self.u, problem.F, problem.J, bcs)
+            snes, x, b, self.u, self._F, self._J, bcs)
         self._assemble_jacobian = lambda x, J: dolfinx.fem.petsc.assemble_jacobian(
-            snes, x, J, J, self.u, problem.J, None, bcs)
+            snes, x, J, J, self.u, self._J, None, bcs)
         snes.setFunction(self._residual, self.problem.b)
+        snes.setJacobian(self._jacobian, problem.A, problem.A)
+
+    def set_facet_domains(self, domains: dict[int, Any] | None) -> None:
+        """Integrate the exterior-facet subdomains in ``domains`` over the facets given there.
+
+        The energy, residual and Jacobian of the coming solves integrate ``ds(i)`` over
+        ``domains[i]`` (``(cell, local facet)`` pairs, :func:`models.backend.
+        exterior_facet_domain`): the caller guarantees that the integrand vanishes on the
+        facets left out (e.g. a contact penalty away from its obstacle). ``None`` restores
+        the forms as compiled. :attr:`problem` keeps the compiled forms.
+        """
+        if domains is None:
+            self._energy, self._F, self._J = self._full
+            return
+        self._energy, self._F, self._J = (with_facet_domains(f, domains) for f in self._full)
 
     def _residual(self, _snes: Any, x: Any, b: Any) -> None:
         """Residual of dolfinx plus ``K u - c`` on the free rows (SNES function)."""

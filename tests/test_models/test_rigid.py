@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from meshes.errors import InputError
+from models.contact import point_triangle_distance
 from models.rigid import (
     BallState,
     RigidBallOptions,
     RigidCouplingOptions,
     advance,
-    point_triangle_distance,
     predict,
     scheme,
 )

@@ -153,17 +153,38 @@ def admissible_start(energy: ShellEnergy, x0: np.ndarray, anchor: np.ndarray
                       f"face?)")
 
 
-def warm_start(shell: Shell, y: np.ndarray, frame: int, perturb: bool = True) -> np.ndarray:
+def settled(shell: Shell, x0: np.ndarray) -> bool:
+    """Whether ``x0`` already meets the gradient tolerance of the shell's next solve.
+
+    The tolerance is the one :func:`minimize_from_state` gives the solver, ``atol + rtol
+    g_ref``, with ``g_ref`` the largest initial gradient so far (or the options' fixed
+    scale); before the first solve there is no reference and nothing counts as settled.
+    """
+    options = shell.options.internals.newton
+    scale = options.gradient_scale or shell.gradient_scale
+    if scale == 0.0:
+        return False
+    grad = np.asarray(shell.energy.evaluate(x0, order=1).grad)
+    return bool(np.linalg.norm(grad) <= options.atol + options.rtol * scale)
+
+
+def warm_start(shell: Shell, y: np.ndarray, frame: int, perturb: bool = True,
+               unless_settled: bool = False) -> np.ndarray:
     """Move the target to ``y``; return the warm start ``x_prev + (y - y_prev) + eta_k``.
 
-    ``eta_k`` only when ``perturb``; a start with a face turned over against the new target's
-    normals is repaired (:func:`admissible_start`; ``shell.start_repaired`` counts the
-    vertices moved).
+    ``eta_k`` only when ``perturb``, and with ``unless_settled`` only when ``x_prev + (y -
+    y_prev)`` is not already a solution (:func:`settled`: the body moved the shell's target
+    rigidly, or not at all): the Newton would spend its iterations removing the
+    imperfection again. A start with a face turned over against the new target's normals
+    is repaired (:func:`admissible_start`; ``shell.start_repaired`` counts the vertices
+    moved).
     """
-    eta = imperfection(shell, frame) if perturb else 0.0
-    x0 = shell.x + (y - shell.y) + eta
+    x0 = shell.x + (y - shell.y)
     shell.set_target(y)
-    x0, shell.start_repaired = admissible_start(shell.energy, x0, y + eta)
+    if perturb and unless_settled and settled(shell, x0):
+        perturb = False
+    eta = imperfection(shell, frame) if perturb else 0.0
+    x0, shell.start_repaired = admissible_start(shell.energy, x0 + eta, y + eta)
     return x0
 
 
@@ -174,11 +195,12 @@ def solve_shell(shell: Shell, y: np.ndarray, frame: int, comm: MPI.Comm,
     The ranks solve together (:attr:`Shell.solver`, split over the ranks when there are
     several), then rank 0's result is broadcast so all ranks hold bitwise the same shell.
     ``perturb = False`` leaves out the imperfection (repeated solves of one frame in the
-    coupling iteration). A warm start with a face turned over against the new target's
-    normals is repaired first (:func:`admissible_start`; ``shell.start_repaired`` counts the
-    vertices moved).
+    coupling iteration); it is left out too where the warm start is already a solution
+    (:func:`warm_start`), so a frame that only moves the shell rigidly takes no iteration.
+    A warm start with a face turned over against the new target's normals is repaired
+    first (:func:`admissible_start`; ``shell.start_repaired`` counts the vertices moved).
     """
-    x, report = _minimize(shell, warm_start(shell, y, frame, perturb))
+    x, report = _minimize(shell, warm_start(shell, y, frame, perturb, unless_settled=True))
     shell.x, shell.y = np.asarray(comm.bcast(x, root=0)), y
     return report
 
@@ -264,4 +286,4 @@ def one_way_stage(shell: Shell, body: Body, write: Writer) -> Callable[[int], St
 
 __all__ = ["StageRecord", "admissible_start", "deviation", "imperfection", "one_way_stage",
            "minimize_from_state", "restore_shell", "scale_tolerance", "shell_arrays",
-           "shell_record", "solve_shell", "target", "warm_start"]
+           "settled", "shell_record", "solve_shell", "target", "warm_start"]

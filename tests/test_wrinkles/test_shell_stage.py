@@ -17,7 +17,7 @@ from solvers.body import Body
 from wrinkles.runner import Run, prepare, run_frames
 from wrinkles.scene import scene_from_dict
 from wrinkles.shell_setup import Shell, build_shell
-from wrinkles.shell_stage import solve_shell, target
+from wrinkles.shell_stage import imperfection, solve_shell, target, warm_start
 
 
 def run_bar(tmp: Path, velocity: tuple[float, float, float], frames: int,
@@ -43,6 +43,33 @@ def test_rigid_translation_is_followed_exactly(tmp_path):
     assert record["wrinkle_amplitude"] < 1e-12
     assert record["max_distance_to_target"] < 1e-12
     assert record["shell_energy"] < 1e-20
+
+
+def test_frames_that_only_move_the_shell_rigidly_take_no_iteration(tmp_path):
+    """A rigid translation over 3 frames: the first frame removes its imperfection, the next
+    two start at a solution and get none (``settled``); a strained target still gets one."""
+    d = np.array([0.004, -0.002, 0.003])
+    scene = bar_scene(tuple(d), 3, {"subdivision": {"levels": 1}, "skin": SKIN,
+                                    "energy": {"k_P": 1.0e4}, "solver": {"rtol": 1e-8}})
+    scene["body"]["pins"][0]["velocity"] = list(d)
+    run = run_frames(prepare(scene_from_dict(scene, Path.cwd()), tmp_path, MPI.COMM_WORLD),
+                     lambda line: None)
+    shell = run.shell
+    assert shell is not None
+    its = [r.details["shell_iterations"] for r in run.records]
+    print(f"shell iterations per frame {its}, final max |x - y| "
+          f"{np.abs(shell.x - shell.y).max():.1e} m")
+    assert its[0] > 0 and its[1:] == [0, 0]
+    assert np.abs(shell.x - shell.y).max() < 1e-12
+    moved = shell.y + np.array([0.01, 0.0, 0.0])
+    start = warm_start(shell, moved, 4, unless_settled=True)
+    assert np.array_equal(start, shell.x + (moved - shell.y))  # no imperfection
+    center = shell.y.mean(axis=0)
+    strained = center + 1.01 * (shell.y - center)  # 1 % stretch: not a solution
+    start = warm_start(shell, strained, 4, unless_settled=True)
+    eta = imperfection(shell, 4)
+    assert np.abs(eta).max() > 0.0
+    assert np.allclose(start, shell.x + (strained - shell.y) + eta, rtol=0, atol=1e-15)
 
 
 @pytest.fixture(scope="module")

@@ -519,8 +519,9 @@ class Body:
         """Solve with each obstacle's penalty on its candidate facets (:mod:`solvers.contact_set`).
 
         The solve starts from the current ``u`` (the guess, set after ``u_n``). If it fails or
-        a facet left out is penetrated at its end, it is repeated from the same start with
-        the penalties over all exterior facets.
+        a facet left out is penetrated at its end, it is repeated from the same ``u`` with
+        the penalties over all exterior facets (a solve installed by :meth:`use_solve` that
+        moved its own state, e.g. the coupled shell, repeats from there).
         """
         if self._active is None:
             return self._solve(solver)

@@ -13,12 +13,12 @@ positions ``X + u_0``) is below the margin
 
 ``u_0 - u_n`` the motion of the facet corners the step's initial guess predicts (twice it:
 the solve may go further) and ``e_max`` the longest exterior edge of the rest mesh (a slack
-for curved P2 facets and facets about to touch). After
-the solve, the penalty over the facets left out is assembled (:meth:`ActiveFacets.outside`):
-every term of that sum is zero where ``g >= 0``, so the sum is exactly ``0.0`` unless a facet
-left out is penetrated; then the caller solves again from the same start over all facets.
-A solve that passes the check took the steps the solve over all facets takes (the terms left
-out are zeros in every assembled sum), so the result is the same to round-off.
+for curved P2 facets and facets about to touch). After the solve, the penalty over the facets
+left out is assembled (:meth:`ActiveFacets.outside`): every term of that sum is zero where
+``g >= 0``, so the sum is exactly ``0.0`` unless a facet left out is penetrated; then the
+caller solves again from the same start over all facets. A solve that passes the check took
+the steps of the solve over all facets (the terms left out are exact zeros in every assembled
+sum), so the result is the same, bitwise where no iterate touched a facet left out.
 """
 
 from __future__ import annotations

@@ -597,6 +597,22 @@ def peak_memory_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def contact_facts(body: Body) -> dict[str, Any] | None:
+    """Return the body's contact facet selection over the run (collective; None: no obstacle).
+
+    ``share``: the facets the body solves integrated the penalties over, as a fraction of all
+    exterior facets times obstacles (:mod:`solvers.contact_set`); ``retries``: solves repeated
+    over all facets because a facet left out was penetrated. Counted over the frames this
+    process ran (a resumed run from its resume on).
+    """
+    stats = body.contact_set
+    if stats is None:
+        return None
+    kept, total = (body.mesh.comm.allreduce(v, op=MPI.SUM) for v in (stats.facets, stats.total))
+    return {"solves": stats.solves, "share": kept / total if total else 0.0,
+            "retries": stats.retries}
+
+
 def write_summary(run: Run) -> None:
     """Rewrite ``summary.json`` atomically on rank 0."""
     if run.comm.rank == 0:
@@ -628,6 +644,9 @@ def run_frames(run: Run, log: Callable[[str], None] = print) -> Run:
     run.facts["status"] = "completed"
     run.facts["wall_time"] = time.perf_counter() - run.started
     run.facts["peak_memory_mb"] = run.comm.allgather(peak_memory_mb())
+    contact = contact_facts(run.body)
+    if contact is not None:
+        run.facts["contact_facets"] = contact
     write_summary(run)
     if run.comm.rank == 0:
         shutil.rmtree(run.out / WORK_DIR, ignore_errors=True)

@@ -26,15 +26,25 @@ def run_bar(tmp: Path, velocity: tuple[float, float, float], frames: int,
     return run_frames(prepare(scene, tmp, MPI.COMM_WORLD), lambda line: None)
 
 
+RIGID_MOTION = np.array([0.004, -0.002, 0.003])
+"""Translation of the bar per frame [m] (every node pinned to it)."""
+
+
+def rigid_bar(tmp: Path, frames: int, rtol: float) -> Run:
+    """The bar translated by :data:`RIGID_MOTION` per frame, a 1-level shell of k_P = 1e4."""
+    d = RIGID_MOTION
+    scene = bar_scene(tuple(d), frames, {"subdivision": {"levels": 1}, "skin": SKIN,
+                                         "energy": {"k_P": 1.0e4}, "solver": {"rtol": rtol}})
+    scene["body"]["pins"][0]["velocity"] = list(d)
+    return run_frames(prepare(scene_from_dict(scene, Path.cwd()), tmp, MPI.COMM_WORLD),
+                      lambda line: None)
+
+
 def test_rigid_translation_is_followed_exactly(tmp_path):
     """No strain: y = X_T + d exactly (B reproduces linear fields) and x = y to tolerance,
     even from a perturbed warm start (imperfection 1e-3 edge lengths, removed by Newton)."""
-    d = np.array([0.004, -0.002, 0.003])
-    scene = bar_scene(tuple(d), 1, {"subdivision": {"levels": 1}, "skin": SKIN,
-                                    "energy": {"k_P": 1.0e4}, "solver": {"rtol": 1e-10}})
-    scene["body"]["pins"][0]["velocity"] = list(d)
-    run = run_frames(prepare(scene_from_dict(scene, Path.cwd()), tmp_path, MPI.COMM_WORLD),
-                     lambda line: None)
+    d = RIGID_MOTION
+    run = rigid_bar(tmp_path, 1, 1e-10)
     shell, record = run.shell, run.records[-1].details
     assert shell is not None
     assert np.abs(shell.y - (shell.rest + d)).max() < 1e-12
@@ -48,12 +58,7 @@ def test_rigid_translation_is_followed_exactly(tmp_path):
 def test_frames_that_only_move_the_shell_rigidly_take_no_iteration(tmp_path):
     """A rigid translation over 3 frames: the first frame removes its imperfection, the next
     two start at a solution and get none (``settled``); a strained target still gets one."""
-    d = np.array([0.004, -0.002, 0.003])
-    scene = bar_scene(tuple(d), 3, {"subdivision": {"levels": 1}, "skin": SKIN,
-                                    "energy": {"k_P": 1.0e4}, "solver": {"rtol": 1e-8}})
-    scene["body"]["pins"][0]["velocity"] = list(d)
-    run = run_frames(prepare(scene_from_dict(scene, Path.cwd()), tmp_path, MPI.COMM_WORLD),
-                     lambda line: None)
+    run = rigid_bar(tmp_path, 3, 1e-8)
     shell = run.shell
     assert shell is not None
     its = [r.details["shell_iterations"] for r in run.records]

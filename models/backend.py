@@ -10,7 +10,10 @@ upgrade touches one file.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 import dolfinx_solver  # noqa: F401  (must precede mpi4py, petsc4py and dolfinx)
 
@@ -115,7 +118,7 @@ def global_min_on_cells(expression: dolfinx.fem.Expression, mesh: dolfinx.mesh.M
     return float(mesh.comm.allreduce(local, op=MPI.MIN))
 
 
-def exterior_facet_domain(mesh: dolfinx.mesh.Mesh, facets: object) -> object:
+def exterior_facet_domain(mesh: dolfinx.mesh.Mesh, facets: object) -> npt.NDArray[Any]:
     """Return the integration entities of exterior facets: ``(cell, local facet)`` pairs, flattened.
 
     Args:

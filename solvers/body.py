@@ -183,9 +183,9 @@ class Body:
         k = (penalty_stiffness(self.options.contact_stiffness, material.E, min_cell_size(mesh))
              if self.options.contacts else 0.0)
         facets, self._facets = None, exterior_facets(mesh)
+        self._facet_pairs = exterior_facet_domain(mesh, self._facets)
         if self.options.contacts:
-            pairs = exterior_facet_domain(mesh, self._facets)
-            facets = [(i, pairs) for i in range(len(self.options.contacts))]
+            facets = [(i, self._facet_pairs) for i in range(len(self.options.contacts))]
         self.contacts = [PenaltyContact(c, mesh, k, i, facets)
                          for i, c in enumerate(self.options.contacts)]
         self.dx = ufl.Measure("dx", domain=mesh,
@@ -258,7 +258,8 @@ class Body:
         self._reaction = [[dolfinx.fem.form(f) for f in c.force_forms(self.u)]
                           for c in self.contacts]
         self._active = (ActiveFacets(self.mesh, self.V, self.contacts, self._facets,
-                                     self._forms["contact"]) if self.contacts else None)
+                                     self._facet_pairs, self._forms["contact"])
+                        if self.contacts else None)
         self._static_ufl = static
 
     def _energy_scale(self) -> float:

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from models.backend import MPI, exterior_facet_domain, global_scalar, with_facet_domains
+from models.backend import MPI, global_scalar, with_facet_domains
 from models.contact import BoundaryTriangles, PenaltyContact
 
 SLACK: float = 0.1
@@ -62,15 +62,17 @@ class ActiveFacets:
         contacts: The obstacles; obstacle i integrates over ``ds(contacts[i].facet_id)``.
         facets: This rank's exterior facets (:func:`models.contact.exterior_facets`), the
             obstacles' full domain.
+        pairs: The same facets as ``(cell, local facet)`` pairs, flattened
+            (:func:`models.backend.exterior_facet_domain`, as the obstacles' forms hold them).
         penalty: The compiled sum of the obstacles' penalty energies (the check's form).
 
     """
 
     def __init__(self, mesh: Any, V: Any, contacts: list[PenaltyContact], facets: np.ndarray,
-                 penalty: Any) -> None:
+                 pairs: np.ndarray, penalty: Any) -> None:
         self.contacts, self.penalty, self.comm = contacts, penalty, mesh.comm
         self.surface = BoundaryTriangles.of(mesh, V, facets)
-        self.pairs = np.asarray(exterior_facet_domain(mesh, facets), dtype=np.int32).reshape(-1, 2)
+        self.pairs = np.asarray(pairs, dtype=np.int32).reshape(-1, 2)
         rest = self.surface.rest
         longest = (np.linalg.norm(rest - np.roll(rest, 1, axis=1), axis=2).max()
                    if rest.size else 0.0)

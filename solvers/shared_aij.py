@@ -37,56 +37,64 @@ def _index_type(n: int) -> type:
 
 
 class SharedAIJ:
-    """``MATMPIAIJ`` (``local`` of ``total`` square rows on this rank) over numpy arrays.
+    """``MATMPIAIJ`` (``local`` of ``total`` rows on this rank) over numpy arrays.
 
-    Collective. Ranks own consecutive row ranges in rank order; rank r's rows are given as
-    CSR over global columns, its row ``i`` being the matrix row ``start_r + i``.
+    Collective. Ranks own consecutive row (and column) ranges in rank order; rank r's rows
+    are given as CSR over global columns, its row ``i`` being the matrix row ``start_r + i``.
+    Square by default (the columns split as the rows, the symmetric flag set); with
+    ``columns = (local_cols, total_cols)`` rectangular (no flag, no diagonal).
 
     Args:
         comm: Communicator.
-        local: Rows (and columns) owned by this rank.
-        total: Global size.
+        local: Rows owned by this rank.
+        total: Global rows.
         indptr: (local + 1,) CSR row pointer of this rank's entries.
         cols: Global column of each entry (any order within a row, no column twice).
+        columns: ``(local, global)`` columns of a rectangular matrix (None: square).
 
     Attributes:
-        mat: The PETSc matrix (symmetric flag set); its values are :meth:`set_values`'s.
-        diagonal: Positions of the diagonal entries in the diagonal block's values.
+        mat: The PETSc matrix; its values are :meth:`set_values`'s.
+        diagonal: Positions of the diagonal entries in the diagonal block's values (empty
+            for a rectangular matrix).
 
     """
 
     def __init__(self, comm: Any, local: int, total: int, indptr: np.ndarray,
-                 cols: np.ndarray) -> None:
-        start = _row_start(comm, local)
-        index = _index_type(max(total, len(cols)))
+                 cols: np.ndarray, columns: tuple[int, int] | None = None) -> None:
+        square = columns is None
+        local_cols, total_cols = (local, total) if columns is None else columns
+        start = _row_start(comm, local_cols)
+        index = _index_type(max(total, total_cols, len(cols)))
         indptr = np.asarray(indptr).astype(index)
         if indptr.shape != (local + 1,):
             raise InputError(f"SharedAIJ: indptr must have {local + 1} entries")
         cols = np.asarray(cols).astype(index)
-        inside = (cols >= start) & (cols < start + local)
+        inside = (cols >= start) & (cols < start + local_cols)
         # sort every row's entries by a key that puts the diagonal block first
-        key: np.ndarray = np.where(inside, cols - start, local + cols).astype(index)
+        key: np.ndarray = np.where(inside, cols - start, local_cols + cols).astype(index)
         order = sp.csr_matrix((np.arange(cols.size, dtype=np.float64), key, indptr),
-                              shape=(local, local + total))
+                              shape=(local, local_cols + total_cols))
         order.sort_indices()
         if not order.has_canonical_format:  # sorted rows with a column twice
             raise InputError("SharedAIJ: an entry (row, column) is given twice")
         rows: np.ndarray = np.repeat(np.arange(local, dtype=index), np.diff(indptr))
-        first = order.indices < local
+        first = order.indices < local_cols
         self._take = [order.data[first].astype(index), order.data[~first].astype(index)]
         blocks = []
-        for mask, shift in ((first, 0), (~first, local)):
+        for mask, shift in ((first, 0), (~first, local_cols)):
             block_ptr = np.zeros(local + 1, dtype=PETSc.IntType)
             np.cumsum(np.bincount(rows[mask], minlength=local), out=block_ptr[1:])
             blocks.append((block_ptr, (order.indices[mask] - shift).astype(PETSc.IntType),
                            np.zeros(int(mask.sum()), dtype=PETSc.ScalarType)))
         self._blocks = blocks  # PETSc reads these arrays: they live as long as the matrix
-        self.diagonal = np.flatnonzero(rows[first] == blocks[0][1])
+        self.diagonal = (np.flatnonzero(rows[first] == blocks[0][1]) if square
+                         else np.zeros(0, dtype=np.int64))
         mat: Any = PETSc.Mat()
-        self.mat = mat.createAIJWithArrays(((local, total), (local, total)),
+        self.mat = mat.createAIJWithArrays(((local, total), (local_cols, total_cols)),
                                            (blocks[0], blocks[1]), comm=comm)
         self.mat.assemble()
-        self.mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        if square:
+            self.mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
 
     @property
     def nnz(self) -> int:

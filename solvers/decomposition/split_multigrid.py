@@ -127,12 +127,19 @@ class LevelNumbering:
 
 def _rect_aij(comm: Any, rows: tuple[int, int], cols: tuple[int, int],
               coo: tuple[np.ndarray, np.ndarray, np.ndarray]) -> Any:
-    """Assembled ``MATMPIAIJ`` of (local, global) ``rows`` x ``cols`` from this rank's COO."""
-    mat: Any = PETSc.Mat().create(comm=comm)
-    mat.setSizes((rows, cols))
-    mat.setType(PETSc.Mat.Type.AIJ)
-    mat.setPreallocationCOO(coo[0].astype(PETSc.IntType), coo[1].astype(PETSc.IntType))
-    mat.setValuesCOO(np.ascontiguousarray(coo[2], dtype=PETSc.ScalarType))
+    """Assembled ``MATMPIAIJ`` of (local, global) ``rows`` x ``cols`` from this rank's COO.
+
+    Built from CSR (``MatMPIAIJSetPreallocationCSR``): a matrix set once keeps no per-entry
+    maps (``MatSetPreallocationCOO`` would keep two 8-byte integers per entry).
+    """
+    start = int(comm.exscan(rows[0]) or 0) if comm.size > 1 else 0
+    local = sp.csr_matrix((coo[2], (coo[0] - start, coo[1])), shape=(rows[0], cols[1]))
+    local.sum_duplicates()
+    mat: Any = PETSc.Mat().createAIJ(
+        (rows, cols), csr=(local.indptr.astype(PETSc.IntType),
+                           local.indices.astype(PETSc.IntType),
+                           local.data.astype(PETSc.ScalarType)), comm=comm)
+    mat.assemble()
     return mat
 
 

@@ -11,8 +11,9 @@ used by the deflation preconditioner A-DEF2 (Tang, Nabben, Vuik & Erlangga, J. S
 
 * Z is a ``MATMPIAIJ`` whose rows are the fine dofs of each rank (PETSc numbering of
   :class:`~.split_multigrid.LevelNumbering`) and whose columns are numbered by the owner of
-  each hat (3 per hat); each rank computes the entries of its own rows (from the full x),
-  the column norms summed over the ranks;
+  each hat (3 per hat); each rank computes the entries of its own rows (from the full x)
+  into the arrays PETSc reads (:class:`~solvers.shared_aij.SharedAIJ`), the column norms
+  summed over the ranks;
 * ``Z^T (A Z)`` and ``(G Z)^T (G Z)`` are parallel products (symbolic parts reused); ``A_Z``
   is small (3 columns per coarse hat) and is gathered to every rank and factorised there by
   the serial LDL^T, whose inertia says whether A is indefinite (as in the serial space);
@@ -28,6 +29,7 @@ import scipy.sparse as sp
 
 from models.backend import PETSc
 from solvers.phase_space import CoarseSpace
+from solvers.shared_aij import SharedAIJ
 
 
 def _gathered(mat: Any, comm: Any) -> sp.csr_matrix:
@@ -66,13 +68,15 @@ class SplitPhaseSpace(CoarseSpace):
         self.comm = comm
         owned = np.zeros(fine_dof.size, dtype=bool)
         owned[fine_owned] = True
-        self._reorder(np.flatnonzero(owned[3 * self.vertex + self.component]))  # own rows only
-        z: Any = PETSc.Mat().create(comm=comm)
-        z.setSizes((fine_sizes, hat_sizes))
-        z.setType(PETSc.Mat.Type.AIJ)
-        z.setPreallocationCOO(fine_dof[3 * self.vertex + self.component].astype(PETSc.IntType),
-                              hat_dof[self.column].astype(PETSc.IntType))
-        self.z = z
+        mine = np.flatnonzero(owned[3 * self.vertex + self.component])
+        rows = fine_dof[3 * self.vertex[mine] + self.component[mine]]
+        order = np.argsort(rows, kind="stable")
+        self._reorder(mine[order])  # own rows only, by row
+        start = int(comm.exscan(fine_sizes[0]) or 0) if comm.size > 1 else 0
+        indptr = np.searchsorted(rows[order] - start, np.arange(fine_sizes[0] + 1))
+        self._shared = SharedAIJ(comm, fine_sizes[0], fine_sizes[1], indptr,
+                                 hat_dof[self.column], columns=hat_sizes)
+        z = self.z = self._shared.mat
         self._rhs, self._solution = z.createVecRight(), z.createVecRight()
         self._scatter, self._full = PETSc.Scatter.toAll(self._rhs)
         self._range = self._rhs.getOwnershipRange()
@@ -80,7 +84,7 @@ class SplitPhaseSpace(CoarseSpace):
     def set_fields(self, x: np.ndarray, target: np.ndarray) -> None:
         """Z's values from the positions x and the penalty target y (both ``(n, 3)``)."""
         self._field_values(x, target)
-        self.z.setValuesCOO(self.values)
+        self._shared.set_values(self.values)
 
     def _csr(self, mat: Any) -> sp.csr_matrix:
         """Gather a distributed product of Z to every rank as one scipy matrix."""

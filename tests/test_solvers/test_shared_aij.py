@@ -17,9 +17,10 @@ import json, sys
 import numpy as np, scipy.sparse as sp
 from models.backend import MPI
 sys.path.insert(0, "tests/test_solvers")
-from test_shared_aij import block_product_error, product_error
+from test_shared_aij import block_product_error, product_error, rectangular_error
 comm = MPI.COMM_WORLD
-err = comm.allreduce(max(product_error(comm, 40), block_product_error(comm, 14)), op=MPI.MAX)
+err = comm.allreduce(max(product_error(comm, 40), block_product_error(comm, 14),
+                         rectangular_error(comm, 40, 11)), op=MPI.MAX)
 if comm.rank == 0:
     print("RESULT " + json.dumps({"error": err}))
 """
@@ -58,6 +59,33 @@ def product_error(comm, n: int) -> float:  # noqa: ANN001
     return max(first, float(np.abs(y.getArray() - ref).max() / np.abs(ref).max()))
 
 
+def _split(n: int, comm) -> tuple[int, int]:  # noqa: ANN001
+    """(local, start) of n rows split over the ranks in rank order."""
+    local = n // comm.size + (comm.rank < n % comm.size)
+    return local, int(comm.exscan(local) or 0) if comm.size > 1 else 0
+
+
+def rectangular_error(comm, n: int, m: int) -> float:  # noqa: ANN001
+    """Max relative error of ``Z v`` and ``Z^T w`` for an n x m Z with split rows and columns."""
+    z = sp.csr_matrix(sp.random(n, m, density=0.3, random_state=6))
+    rows, start = _split(n, comm)
+    cols, col_start = _split(m, comm)
+    lo, hi = z.indptr[start], z.indptr[start + rows]
+    shared = SharedAIJ(comm, rows, n, z.indptr[start:start + rows + 1] - lo, z.indices[lo:hi],
+                       columns=(cols, m))
+    shared.set_values(z.data[lo:hi])
+    x, y = shared.mat.createVecs()
+    v, w = np.cos(np.arange(m, dtype=float)), np.sin(np.arange(n, dtype=float))
+    x.setArray(v[col_start:col_start + cols])
+    shared.mat.mult(x, y)
+    err = np.abs(y.getArray() - (z @ v)[start:start + rows]).max() / np.abs(z @ v).max()
+    y.setArray(w[start:start + rows])
+    shared.mat.multTranspose(y, x)
+    ref = z.T @ w
+    return max(float(err), float(np.abs(x.getArray() - ref[col_start:col_start + cols]).max()
+                                 / np.abs(ref).max()))
+
+
 def block_product_error(comm, vertices: int) -> float:  # noqa: ANN001
     """Max relative error of ``(A + 0.5 I) v`` with A symmetric of full 3 x 3 blocks.
 
@@ -84,6 +112,7 @@ def block_product_error(comm, vertices: int) -> float:  # noqa: ANN001
 
 def test_product_equals_scipy_on_one_rank() -> None:
     assert product_error(MPI.COMM_SELF, 30) < 1e-14
+    assert rectangular_error(MPI.COMM_SELF, 30, 7) < 1e-14
     assert block_product_error(MPI.COMM_SELF, 10) < 1e-14
 
 

@@ -142,8 +142,8 @@ class CoarseSpace:
         # entry e of Z: dof 3 v + c, column TEST_FIELDS j + m, value hat(v, j) t_m[v, c]
         self.vertex = np.repeat(coo.row, 3 * TEST_FIELDS)
         self.hat = np.repeat(coo.col, 3 * TEST_FIELDS)
-        self.component = np.tile(np.repeat(np.arange(3), TEST_FIELDS), coo.nnz)
-        self.field = np.tile(np.arange(TEST_FIELDS), 3 * coo.nnz)
+        self.component = np.tile(np.repeat(np.arange(3, dtype=np.int8), TEST_FIELDS), coo.nnz)
+        self.field = np.tile(np.arange(TEST_FIELDS, dtype=np.int8), 3 * coo.nnz)
         self.hat_value = np.repeat(coo.data, 3 * TEST_FIELDS)
         self.column = TEST_FIELDS * self.hat + self.field
         self.n_columns = TEST_FIELDS * hats.shape[1]

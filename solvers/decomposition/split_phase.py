@@ -42,6 +42,27 @@ def _gathered(mat: Any, comm: Any) -> sp.csr_matrix:
                           np.concatenate([[0], np.cumsum(counts)])), shape=mat.getSize())
 
 
+def _summed(part: sp.csr_matrix, comm: Any) -> sp.csr_matrix:
+    """The sum over the ranks of every rank's ``part`` (same shape), on every rank."""
+    coo = part.tocoo()
+    parts = comm.allgather((coo.row, coo.col, coo.data))
+    total = sp.csr_matrix((np.concatenate([q[2] for q in parts]),
+                           (np.concatenate([q[0] for q in parts]),
+                            np.concatenate([q[1] for q in parts]))), shape=part.shape)
+    total.sum_duplicates()
+    return total
+
+
+def _rows_kept(m: sp.csr_matrix, rows: np.ndarray) -> sp.csr_matrix:
+    """``m`` with every row outside ``rows`` emptied (the kept rows' entries in their order)."""
+    keep = np.zeros(m.shape[0], dtype=bool)
+    keep[rows] = True
+    lengths = np.diff(m.indptr)
+    entries = np.repeat(keep, lengths)
+    indptr = np.concatenate([[0], np.cumsum(np.where(keep, lengths, 0))])
+    return sp.csr_matrix((m.data[entries], m.indices[entries], indptr), shape=m.shape)
+
+
 class SplitPhaseSpace(CoarseSpace):
     """Z over the ranks, the gathered ``A_Z`` and the correction ``Q r`` (module docstring).
 
@@ -72,10 +93,12 @@ class SplitPhaseSpace(CoarseSpace):
         rows = fine_dof[3 * self.vertex[mine] + self.component[mine]]
         order = np.argsort(rows, kind="stable")
         self._reorder(mine[order])  # own rows only, by row
+        self.gradients = tuple(_rows_kept(g, np.unique(self.vertex)) for g in self.gradients)
         start = int(comm.exscan(fine_sizes[0]) or 0) if comm.size > 1 else 0
         indptr = np.searchsorted(rows[order] - start, np.arange(fine_sizes[0] + 1))
-        self._shared = SharedAIJ(comm, fine_sizes[0], fine_sizes[1], indptr,
-                                 hat_dof[self.column], columns=hat_sizes)
+        self._own = (indptr, hat_dof[self.column].astype(PETSc.IntType), hat_sizes[1])
+        self._shared = SharedAIJ(comm, fine_sizes[0], fine_sizes[1], indptr, self._own[1],
+                                 columns=hat_sizes)
         z = self.z = self._shared.mat
         self._rhs, self._solution = z.createVecRight(), z.createVecRight()
         self._scatter, self._full = PETSc.Scatter.toAll(self._rhs)
@@ -89,6 +112,20 @@ class SplitPhaseSpace(CoarseSpace):
     def _csr(self, mat: Any) -> sp.csr_matrix:
         """Gather a distributed product of Z to every rank as one scipy matrix."""
         return _gathered(mat, self.comm)
+
+    def _gram_matrix(self) -> sp.csr_matrix:
+        """``Z^T Z``: every rank's ``Z_r^T Z_r`` of its own rows (scipy), summed over the ranks.
+
+        No PETSc product: its transposes and merged local rows would stay allocated for a
+        matrix needed only by the shift-only updates.
+        """
+        mat, csr = self._gram
+        if csr is None:
+            indptr, cols, n_cols = self._own
+            own = sp.csr_matrix((self.values, cols, indptr), shape=(indptr.size - 1, n_cols))
+            csr = _summed(sp.csr_matrix(own.T @ own), self.comm)
+            self._gram = (mat, csr)
+        return csr
 
     def _column_sums(self, sums: np.ndarray) -> np.ndarray:
         """Add every rank's column sums (each rank holds the entries of its own rows)."""

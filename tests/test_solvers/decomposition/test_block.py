@@ -30,8 +30,10 @@ def _setup(case: PlateCase, n_parts: int):
                                               (MILD, "jacobi")])
 def test_block_solve_matches_monolithic(case: PlateCase, method: str) -> None:
     energy, energies, x0, g0, x_ref, ref = _setup(case, 4)
+    # block Jacobi converges linearly and slowly (about 500 outer iterations on the wrinkled
+    # plate, a few more or less with the machine's rounding): the budget is not under test
     x, rep = serial_block_solve(energies, x0, BlockOptions(method=method, rtol=1e-8,
-                                                           gradient_scale=g0))
+                                                           gradient_scale=g0, max_outer=1000))
     w = energy.value(x)
     gap, diff = abs(w - ref.energy) / abs(ref.energy), np.abs(x - x_ref).max() / case.width
     g_final = np.linalg.norm(energy.evaluate(x, order=1).grad)

@@ -1,24 +1,35 @@
-"""Ball on sofa on 2 MPI ranks agrees with the serial run (ball state, penetration, balance)."""
+"""Ball on sofa on 2 and 3 MPI ranks agrees with the serial run (ball state, penetration,
+balance)."""
 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 from support import FAST, SCENE, wrinkles
 
+ARGS = ["run", str(SCENE), "--frames", "5", *FAST, "--set", "output.xdmf=false"]
+
+
+@pytest.fixture(scope="module")
+def serial(tmp_path_factory) -> Path:
+    """The serial run the rank counts are compared with."""
+    out = tmp_path_factory.mktemp("serial")
+    proc = wrinkles(*ARGS, "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    return out
+
 
 @pytest.mark.mpi
-def test_two_ranks_agree_with_serial(tmp_path, mpiexec):
-    serial, parallel = tmp_path / "serial", tmp_path / "mpi"
-    args = ["run", str(SCENE), "--frames", "5", *FAST, "--set", "output.xdmf=false"]
-    proc = wrinkles(*args, "--out", str(serial))
-    assert proc.returncode == 0, proc.stderr
-    proc = mpiexec(["-m", "wrinkles", *args, "--out", str(parallel)], n=2, timeout=300)
+@pytest.mark.parametrize("ranks", [2, 3])
+def test_ranks_agree_with_serial(serial, ranks, tmp_path, mpiexec):
+    parallel = tmp_path / "mpi"
+    proc = mpiexec(["-m", "wrinkles", *ARGS, "--out", str(parallel)], n=ranks, timeout=300)
     assert proc.returncode == 0, proc.stderr
     a, b = (json.loads((d / "summary.json").read_text())["frames"] for d in (serial, parallel))
-    assert json.loads((parallel / "summary.json").read_text())["run"]["ranks"] == 2
+    assert json.loads((parallel / "summary.json").read_text())["run"]["ranks"] == ranks
     for fa, fb in zip(a, b, strict=True):
         ba, bb = fa["details"]["balls"][0], fb["details"]["balls"][0]
         for key in ("center", "velocity"):

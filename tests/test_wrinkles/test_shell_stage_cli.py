@@ -153,37 +153,51 @@ def test_multigrid_linear_method_runs_a_scene_to_the_direct_minimiser(tmp_path):
     np.testing.assert_allclose(energies["multigrid"], energies["direct"], rtol=1e-6)
 
 
-@pytest.mark.mpi
-def test_two_ranks_split_the_multigrid_shell_and_keep_its_frames(mpiexec, tmp_path):
-    """``mpiexec -n 2 wrinkles run`` on a multigrid-sized shell (2 610 vertices, two levels)
-    splits the shell over the ranks (distributed Hessian rows, PCMG and phase space over
-    PETSc) and takes the serial run's steps: the same Newton iterations per frame within one
-    and the same shell to the solver tolerance (Gauss-Newton Hessian, CG to 1e-8, no
-    imperfection: one path to one minimiser; with the exact Hessian the buckling frame's CG
-    failures follow round-off and the two runs may take other paths to other wrinkles)."""
-    args = ["run", str(DEFAULT), "--frames", "1", "--set", "output.render=false",
-            "--set", "body.dt=0.1", "--set", "shell.imperfection=0.0",
-            "--set", "shell.solver.rtol=1e-5",
-            "--set", "shell.solver.options.energy.hessian_mode=gauss_newton",
-            "--set", "shell.solver.options.newton.multigrid.forcing=fixed",
-            "--set", "shell.solver.options.newton.multigrid.rtol=1e-8"]
-    serial = wrinkles(*args, "--out", str(tmp_path / "np1"))
+@pytest.fixture(scope="module")
+def multigrid_serial(tmp_path_factory) -> Path:
+    """One serial frame of the multigrid-sized default scene (the split tests' reference)."""
+    out = tmp_path_factory.mktemp("np1")
+    serial = wrinkles(*SPLIT_ARGS, "--out", str(out))
     assert serial.returncode == 0, serial.stderr[-2000:]
-    proc = mpiexec(["-m", "wrinkles", *args, "--out", str(tmp_path / "np2")], n=2, timeout=600)
+    return out
+
+
+SPLIT_ARGS = ["run", str(DEFAULT), "--frames", "1", "--set", "output.render=false",
+              "--set", "body.dt=0.1", "--set", "shell.imperfection=0.0",
+              "--set", "shell.solver.rtol=1e-5",
+              "--set", "shell.solver.options.energy.hessian_mode=gauss_newton",
+              "--set", "shell.solver.options.newton.multigrid.forcing=fixed",
+              "--set", "shell.solver.options.newton.multigrid.rtol=1e-8"]
+"""One frame of the default scene on one path to one minimiser (see the test below)."""
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("ranks", [2, 3])
+def test_ranks_split_the_multigrid_shell_and_keep_its_frames(multigrid_serial, ranks, mpiexec,
+                                                             tmp_path):
+    """``mpiexec -n 2`` (and ``-n 3``, more ranks than cores here) ``wrinkles run`` on a
+    multigrid-sized shell (2 610 vertices, two levels) splits the shell over the ranks
+    (distributed Hessian rows, PCMG and phase space over PETSc) and takes the serial run's
+    steps: the same Newton iterations per frame within one and the same shell to the solver
+    tolerance (Gauss-Newton Hessian, CG to 1e-8, no imperfection: one path to one minimiser;
+    with the exact Hessian the buckling frame's CG failures follow round-off and the runs may
+    take other paths to other wrinkles)."""
+    out = tmp_path / f"np{ranks}"
+    proc = mpiexec(["-m", "wrinkles", *SPLIT_ARGS, "--out", str(out)], n=ranks, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "split over 2 ranks" in proc.stdout
-    runs = [json.loads((tmp_path / d / "summary.json").read_text()) for d in ("np1", "np2")]
+    assert f"split over {ranks} ranks" in proc.stdout
+    runs = [json.loads((d / "summary.json").read_text()) for d in (multigrid_serial, out)]
     assert runs[1]["run"]["shell"]["solver"]["method"] == "multigrid"
     for f1, f2 in zip(runs[0]["frames"], runs[1]["frames"], strict=True):
         d1, d2 = f1["details"], f2["details"]
         assert d1["shell_converged"] and d2["shell_converged"]
         assert abs(d1["shell_iterations"] - d2["shell_iterations"]) <= 1
         assert d2["shell_energy"] == pytest.approx(d1["shell_energy"], rel=1e-8)
-    _, _, one = read_shell_series(tmp_path / "np1" / "shell.xdmf")
-    _, _, two = read_shell_series(tmp_path / "np2" / "shell.xdmf")
-    diff = np.abs(one[-1][1]["displacement"] - two[-1][1]["displacement"]).max()
+    _, _, one = read_shell_series(multigrid_serial / "shell.xdmf")
+    _, _, split = read_shell_series(out / "shell.xdmf")
+    diff = np.abs(one[-1][1]["displacement"] - split[-1][1]["displacement"]).max()
     print("iterations", [f["details"]["shell_iterations"] for r in runs for f in r["frames"]],
-          "max shell displacement difference 1 vs 2 ranks", diff)
+          f"max shell displacement difference 1 vs {ranks} ranks", diff)
     assert diff < 1e-7
 
 

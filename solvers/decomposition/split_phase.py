@@ -43,7 +43,7 @@ def _gathered(mat: Any, comm: Any) -> sp.csr_matrix:
 
 
 def _summed(part: sp.csr_matrix, comm: Any) -> sp.csr_matrix:
-    """The sum over the ranks of every rank's ``part`` (same shape), on every rank."""
+    """Return the sum over the ranks of every rank's ``part`` (same shape), on every rank."""
     coo = part.tocoo()
     parts = comm.allgather((coo.row, coo.col, coo.data))
     total = sp.csr_matrix((np.concatenate([q[2] for q in parts]),

@@ -26,7 +26,7 @@ from meshes.errors import InputError
 from models.backend import PETSc
 
 
-def _row_start(comm: Any, local: int) -> int:
+def range_start(comm: Any, local: int) -> int:
     """First global row of this rank (ranks own consecutive ranges in rank order)."""
     return int(comm.exscan(local) or 0) if comm.size > 1 else 0
 
@@ -63,7 +63,7 @@ class SharedAIJ:
                  cols: np.ndarray, columns: tuple[int, int] | None = None) -> None:
         square = columns is None
         local_cols, total_cols = (local, total) if columns is None else columns
-        start = _row_start(comm, local_cols)
+        start = range_start(comm, local_cols)
         index = _index_type(max(total, total_cols, len(cols)))
         indptr = np.asarray(indptr).astype(index)
         if indptr.shape != (local + 1,):
@@ -152,7 +152,7 @@ class BlockUpperCopy:
     def __init__(self, comm: Any, local: int, total: int, indptr: np.ndarray,
                  cols: np.ndarray) -> None:
         bs = 3
-        start = _row_start(comm, local)
+        start = range_start(comm, local)
         if local % bs or start % bs or total % bs:
             raise InputError("BlockUpperCopy: row ranges must hold whole 3 x 3 blocks")
         positions = sp.csr_matrix((np.arange(1.0, len(cols) + 1.0), np.asarray(cols),
@@ -188,4 +188,4 @@ class BlockUpperCopy:
         self.mat.assemble()
 
 
-__all__ = ["BlockUpperCopy", "SharedAIJ"]
+__all__ = ["BlockUpperCopy", "SharedAIJ", "range_start"]

@@ -125,30 +125,24 @@ class LevelNumbering:
         return int(self.offsets[-1])
 
 
-def _rect_aij(comm: Any, rows: tuple[int, int], cols: tuple[int, int],
-              coo: tuple[np.ndarray, np.ndarray, np.ndarray]) -> Any:
-    """Assembled ``MATMPIAIJ`` of (local, global) ``rows`` x ``cols`` from this rank's COO.
+def _owned_aij(comm: Any, m: sp.csr_matrix, rows: LevelNumbering,
+               cols: LevelNumbering) -> Any:
+    """``m``'s rows owned here (``rows.owned``, PETSc order) as an assembled ``MATMPIAIJ``.
 
-    Built from CSR (``MatMPIAIJSetPreallocationCSR``): a matrix set once keeps no per-entry
-    maps (``MatSetPreallocationCOO`` would keep two 8-byte integers per entry).
+    Columns are mapped to PETSc's numbering (``cols.dof``). Built from CSR
+    (``MatMPIAIJSetPreallocationCSR``): a matrix set once keeps no per-entry maps
+    (``MatSetPreallocationCOO`` would keep two 8-byte integers per entry).
     """
-    start = int(comm.exscan(rows[0]) or 0) if comm.size > 1 else 0
-    local = sp.csr_matrix((coo[2], (coo[0] - start, coo[1])), shape=(rows[0], cols[1]))
-    local.sum_duplicates()
+    local = sp.csr_matrix(m[rows.owned])
+    local = sp.csr_matrix((local.data, cols.dof[local.indices], local.indptr),
+                          shape=(rows.local_size, cols.size))
+    local.sum_duplicates()  # sorts each row's PETSc columns
     mat: Any = PETSc.Mat().createAIJ(
-        (rows, cols), csr=(local.indptr.astype(PETSc.IntType),
-                           local.indices.astype(PETSc.IntType),
-                           local.data.astype(PETSc.ScalarType)), comm=comm)
+        ((rows.local_size, rows.size), (cols.local_size, cols.size)),
+        csr=(local.indptr.astype(PETSc.IntType), local.indices.astype(PETSc.IntType),
+             local.data.astype(PETSc.ScalarType)), comm=comm)
     mat.assemble()
     return mat
-
-
-def _owned_rows(m: sp.csr_matrix, rows: np.ndarray, row_index: np.ndarray,
-                col_index: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """COO (PETSc rows, PETSc cols, values) of rows ``rows`` of ``m``."""
-    sub = sp.csr_matrix(m[rows])
-    local_rows = np.repeat(np.arange(rows.size), np.diff(sub.indptr))
-    return row_index[rows][local_rows], col_index[sub.indices], sub.data
 
 
 class SplitMultigridSystem(KrylovBase):
@@ -217,9 +211,7 @@ class SplitMultigridSystem(KrylovBase):
     def _prolongation(self, p: sp.csr_matrix, fine: LevelNumbering,
                       coarse: LevelNumbering) -> Any:
         """``P_l`` as ``MATMPIAIJ`` (rows of the fine level, columns of the coarse)."""
-        coo = _owned_rows(sp.csr_matrix(p), fine.owned, fine.dof, coarse.dof)
-        return _rect_aij(self.comm, (fine.local_size, fine.size),
-                         (coarse.local_size, coarse.size), coo)
+        return _owned_aij(self.comm, sp.csr_matrix(p), fine, coarse)
 
     def _penalty_levels(self, g: sp.csr_matrix | None, prolongations: tuple[sp.csr_matrix, ...],
                         cluster_rank: np.ndarray
@@ -236,15 +228,11 @@ class SplitMultigridSystem(KrylovBase):
                                     self.comm.rank, self.comm.size)
         out: list[tuple[Any, np.ndarray] | None] = []
         for level, gl in zip(self.levels, chain, strict=True):
-            coo = _owned_rows(gl, rows.owned, rows.dof, level.dof)
-            mat = _rect_aij(self.comm, (rows.local_size, rows.size),
-                            (level.local_size, level.size), coo)
+            mat = _owned_aij(self.comm, gl, rows, level)
             colsum = np.asarray(gl.multiply(gl).sum(axis=0)).ravel()
             out.append((mat, colsum[level.owned]))
         g0, coarse = chain[0], self.levels[0]
-        return out, _rect_aij(
-            self.comm, (coarse.local_size, coarse.size), (coarse.local_size, coarse.size),
-            _owned_rows(sp.csr_matrix(g0.T @ g0), coarse.owned, coarse.dof, coarse.dof))
+        return out, _owned_aij(self.comm, sp.csr_matrix(g0.T @ g0), coarse, coarse)
 
     # ----------------------------------------------------------------------------- set-up
 

@@ -29,7 +29,7 @@ import scipy.sparse as sp
 
 from models.backend import PETSc
 from solvers.phase_space import CoarseSpace
-from solvers.shared_aij import SharedAIJ
+from solvers.shared_aij import SharedAIJ, range_start
 
 
 def _gathered(mat: Any, comm: Any) -> sp.csr_matrix:
@@ -94,7 +94,7 @@ class SplitPhaseSpace(CoarseSpace):
         order = np.argsort(rows, kind="stable")
         self._reorder(mine[order])  # own rows only, by row
         self.gradients = tuple(_rows_kept(g, np.unique(self.vertex)) for g in self.gradients)
-        start = int(comm.exscan(fine_sizes[0]) or 0) if comm.size > 1 else 0
+        start = range_start(comm, fine_sizes[0])
         indptr = np.searchsorted(rows[order] - start, np.arange(fine_sizes[0] + 1))
         self._own = (indptr, hat_dof[self.column].astype(PETSc.IntType), hat_sizes[1])
         self._shared = SharedAIJ(comm, fine_sizes[0], fine_sizes[1], indptr, self._own[1],

@@ -39,11 +39,16 @@ def _rows(n: int, seed: int) -> sp.csr_matrix:
     return a
 
 
+def _split(n: int, comm) -> tuple[int, int]:  # noqa: ANN001
+    """(local, start) of n rows split over the ranks in rank order."""
+    local = n // comm.size + (comm.rank < n % comm.size)
+    return local, int(comm.exscan(local) or 0) if comm.size > 1 else 0
+
+
 def product_error(comm, n: int) -> float:  # noqa: ANN001
     """Max relative error of ``(A + 0.5 I) v`` on this rank's rows, after two value sets."""
     a = _rows(n, seed=3)
-    local = n // comm.size + (comm.rank < n % comm.size)
-    start = int(comm.exscan(local) or 0) if comm.size > 1 else 0
+    local, start = _split(n, comm)
     lo, hi = a.indptr[start], a.indptr[start + local]
     indptr, cols, values = a.indptr[start:start + local + 1] - lo, a.indices[lo:hi], a.data[lo:hi]
     shared = SharedAIJ(comm, local, n, indptr, cols)
@@ -57,12 +62,6 @@ def product_error(comm, n: int) -> float:  # noqa: ANN001
     shared.mat.mult(x, y)
     ref = ((a + 0.5 * sp.eye(n)) @ v)[start:start + local]
     return max(first, float(np.abs(y.getArray() - ref).max() / np.abs(ref).max()))
-
-
-def _split(n: int, comm) -> tuple[int, int]:  # noqa: ANN001
-    """(local, start) of n rows split over the ranks in rank order."""
-    local = n // comm.size + (comm.rank < n % comm.size)
-    return local, int(comm.exscan(local) or 0) if comm.size > 1 else 0
 
 
 def rectangular_error(comm, n: int, m: int) -> float:  # noqa: ANN001

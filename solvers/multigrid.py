@@ -5,7 +5,8 @@ The shell is the coarse surface subdivided ``L`` times (:mod:`models.embedding.s
 Henson & McCormick, A Multigrid Tutorial, 2nd ed., ch. 3 and 8). On the flat dof vector
 (dof ``3 i + k``) ``P_l = S_l (x) I_3`` and the level operators are Galerkin products
 
-    A_l = P_l^T A_{l+1} P_l            (PETSc MatPtAP, the symbolic product reused),
+    A_l = P_l^T A_{l+1} P_l            (over 3 x 3 vertex blocks, :mod:`solvers.block_galerkin`;
+                                        the distributed solver: PETSc MatPtAP),
 
 so the two-grid error propagation ``(I - P A_c^{-1} P^T A)`` is an A-orthogonal projection;
 linear subdivision reproduces the rigid and uniform-stretch modes exactly.
@@ -49,6 +50,7 @@ from meshes.errors import InputError
 from models.backend import PETSc
 from models.embedding.subdivision import Subdivision, SubdivisionOptions, subdivide
 from models.shell.schedule import balanced_cuts, check_threads
+from solvers.block_galerkin import GalerkinChain
 from solvers.linear import FactorReport
 from solvers.phase_space import (
     PhaseSpace,
@@ -57,7 +59,6 @@ from solvers.phase_space import (
     hat_matrix,
     petsc_aij,
     same_state,
-    scipy_csr,
 )
 
 FORCING: tuple[str, ...] = ("fixed", "eisenstat_walker")
@@ -586,6 +587,11 @@ class FineMatrix:
         mat.assemble()
         self.mat = mat
 
+    def pattern(self) -> sp.csr_matrix:
+        """Return the current values as a scipy CSR view of the arrays PETSc reads."""
+        n = self.indptr.size - 1
+        return sp.csr_matrix((self.values, self.indices, self.indptr), shape=(n, n), copy=False)
+
     def update(self, data: np.ndarray, tau: float) -> None:
         """Copy new values (``+ tau`` on the diagonal); the pattern is unchanged."""
         np.copyto(self.values, data)
@@ -810,6 +816,7 @@ class MultigridLinearSystem(KrylovBase):
         self.n = self.p_scipy[-1].shape[0]
         self._fine: FineMatrix | None = None
         self._galerkin: list[Any] = []
+        self._chain: GalerkinChain | None = None
         self._g_source: sp.csr_matrix | None = None
         self._g_levels: list[sp.csr_matrix | None] = []
         self._coarse_penalty: sp.csr_matrix | None = None
@@ -833,7 +840,8 @@ class MultigridLinearSystem(KrylovBase):
             raise InputError("MultigridOptions.phase_space: needs the shell's rest geometry "
                              "(MultigridLinearSystem(..., geometry=(vertices, faces)))")
         vertex_matrices = tuple(p[::3, ::3].tocsr() for p in self.p_scipy)
-        return PhaseSpace(*geometry, hat_matrix(vertex_matrices, self.options.phase_level))
+        return PhaseSpace(*geometry, hat_matrix(vertex_matrices, self.options.phase_level),
+                          self.options.threads)
 
     # ----------------------------------------------------------------------------- set-up
 
@@ -891,7 +899,7 @@ class MultigridLinearSystem(KrylovBase):
             x, y = self._state if self._state is not None else (self.phase.rest,) * 2
             self.phase.set_fields(x, y)
             self._fields_stale = False
-        report = self.phase.update(self._fine.mat, g, tau, shift_only=shift_only)
+        report = self.phase.update(self._fine.pattern(), g, tau, shift_only=shift_only)
         self._phase_ready = report.usable_spd
         return report
 
@@ -913,13 +921,18 @@ class MultigridLinearSystem(KrylovBase):
         self._deflated = None
 
     def _galerkin_products(self) -> None:
-        """``A_l = P_l^T A_{l+1} P_l`` from the finest down (symbolic product reused)."""
+        """``A_l = P_l^T A_{l+1} P_l`` from the finest down, over 3 x 3 vertex blocks."""
         assert self._fine is not None  # set by factorize (internal invariant)
-        self._galerkin = galerkin_levels(self._fine.mat, self.p_mats, self._galerkin)
+        if self._chain is None:
+            self._chain = GalerkinChain(self._fine.pattern(),
+                                        tuple(p[::3, ::3] for p in self.p_scipy),
+                                        self.options.threads)
+        self._galerkin = [*self._chain.update(self._fine.values), self._fine.mat]
 
     def _update_coarse(self) -> None:
         """Assemble ``A_0 + G_0^T G_0`` (the constant penalty part kept) into the coarse matrix."""
-        a0 = scipy_csr(self._galerkin[0])
+        assert self._chain is not None  # set with the Galerkin levels (internal invariant)
+        a0 = self._chain.products[-1].csr()
         penalty = self._coarse_penalty
         total = a0 if penalty is None else (a0 + penalty).tocsr()
         total.sort_indices()
@@ -953,11 +966,12 @@ class MultigridLinearSystem(KrylovBase):
         if self.options.level_format == "aij":
             return
         if len(self._sbaij) != len(self._products):
-            # converting A_l itself breaks the reused MatPtAP (PETSc 3.25: a segfault when
-            # A_l is a PtAP result, a wrong next product when it is the fine matrix): copy
+            # the next coarser product and the coarse solve read the AIJ values: copy
             assert self._fine is not None  # set by factorize (internal invariant)
+            assert self._chain is not None  # set with the Galerkin levels (internal invariant)
             threads = self.options.threads
-            self._sbaij = [*(_SymmetricCopy(a, threads=threads) for a in self._galerkin[1:-1]),
+            self._sbaij = [*(_SymmetricCopy(b.mat, b.values, threads)
+                             for b in reversed(self._chain.products[:-1])),
                            _SymmetricCopy(self._fine.mat, self._fine.values, threads)]
         for product, copy in zip(self._products, self._sbaij, strict=True):
             copy.refresh()

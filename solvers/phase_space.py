@@ -23,7 +23,8 @@ there to the shell) times its test fields:
 so ``span Z`` holds every coarse-scale modulation of the amplitude and phase of the wrinkles
 (the per-hat frame keeps two independent derivatives, ``n . grad = 0``). Z's pattern is fixed
 (the hats'); its values follow x every Newton iteration. The coarse matrix
-``A_Z = Z^T (A + tau I + G^T G) Z`` (``Z^T (A Z)`` with reused symbolic products, plus
+``A_Z = Z^T (A + tau I + G^T G) Z`` (``Z^T (A Z)`` over 3 x 3 vertex blocks,
+:mod:`solvers.block_phase`, or PETSc's products with reused symbolic parts on ranks, plus
 ``(G Z)^T (G Z)``; another shift adds ``(tau - tau') Z^T Z``) is factorised by MUMPS LDL^T; its
 inertia tells whether it is positive definite (else the multigrid runs alone for that matrix:
 ``Z^T A Z`` indefinite means A is). A zero column (no wrinkles under a hat) is kept with a unit
@@ -50,6 +51,7 @@ import scipy.sparse as sp
 from meshes.errors import InputError
 from models.backend import PETSc
 from models.shell.rest import area_weighted_normals
+from solvers.block_phase import BlockPhaseProduct
 from solvers.linear import FactorReport, LinearSolverOptions, SparseDirectSolver
 
 TEST_FIELDS: int = 3
@@ -181,7 +183,8 @@ class CoarseSpace:
         """Factorise ``Z^T (A + tau I + G^T G) Z`` of the fine AIJ ``A + tau I``.
 
         Args:
-            fine: The fine Newton matrix, shift included (PETSc AIJ).
+            fine: The fine Newton matrix, shift included: a scipy CSR view of its values
+                (:class:`PhaseSpace`) or the distributed PETSc AIJ (the split space).
             g: The penalty factor G (scipy, or the distributed PETSc factor).
             tau: The shift in ``fine``.
             shift_only: ``fine`` differs from the one of the last full update (same fields)
@@ -251,15 +254,22 @@ class CoarseSpace:
 class PhaseSpace(CoarseSpace):
     """The coarse space Z, its Galerkin matrix and the correction ``Q r = Z A_Z^{-1} Z^T r``.
 
+    ``Z^T A Z`` is formed over 3 x 3 vertex blocks (:class:`solvers.block_phase.
+    BlockPhaseProduct`, patterns from the first update).
+
     Args:
         vertices: Rest positions of the shell ``(n, 3)``.
         faces: Shell triangles.
         hats: Vertex hats ``(n, n_c)`` (:func:`hat_matrix`).
+        threads: Threads of the ``Z^T A Z`` product.
 
     """
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, hats: sp.csr_matrix) -> None:
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, hats: sp.csr_matrix,
+                 threads: int = 1) -> None:
         super().__init__(vertices, faces, hats)
+        self.threads = threads
+        self._block_product: BlockPhaseProduct | None = None
         rows = 3 * self.vertex + self.component
         order = np.lexsort((self.column, rows))
         self._reorder(order)
@@ -279,6 +289,14 @@ class PhaseSpace(CoarseSpace):
         """Z's values from the positions x and the penalty target y (both ``(n, 3)``)."""
         self._field_values(x, target)
         self.z.stateIncrease()
+
+    def _galerkin_matrix(self, fine: sp.csr_matrix) -> sp.csr_matrix:
+        """``Z^T A Z`` over 3 x 3 blocks from the scipy view of A (patterns fixed at the first)."""
+        indptr, columns, values = self.csr
+        if self._block_product is None:
+            z = sp.csr_matrix((values, columns, indptr), shape=self.z.getSize(), copy=False)
+            self._block_product = BlockPhaseProduct(fine, z, self.threads)
+        return self._block_product.product(fine.data, values)
 
     def _penalty_part(self, g: Any) -> sp.csr_matrix:
         """``(G Z)^T (G Z)`` of the scipy G (copied to PETSc once per new object)."""

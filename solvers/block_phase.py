@@ -1,0 +1,185 @@
+r"""The phase space's Galerkin matrix ``Z^T A Z`` over 3 x 3 vertex blocks.
+
+Z (:mod:`solvers.phase_space`) has a full 3 x 3 block ``Z_{vj}`` (rows: the components c of
+vertex v, columns: the test fields m of hat j) wherever vertex v lies in the support of hat j,
+and the Newton matrix A full 3 x 3 blocks ``A_{vw}``. The product is formed in two block
+passes,
+
+.. math::  (AZ)_{vk} = \sum_w A_{vw} Z_{wk},  \qquad
+           (Z^T A Z)_{jk} = \sum_v Z_{vj}^T (AZ)_{vk},
+
+whose patterns (the block patterns of A times the hats', then the hats' transposed times
+that) are computed once; the values are rewritten in place at every product. Each block row
+of a pass is summed by one thread in a fixed order (the result does not depend on the thread
+count); threads take ranges of block rows of equal size. PETSc's scalar products visit the
+same entries one scalar at a time and keep their own intermediate (``MatMatMult``,
+``MatTransposeMatMult``).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import scipy.sparse as sp
+
+from meshes.errors import InputError
+from models.shell.schedule import balanced_cuts
+from solvers.block_galerkin import block_pattern, full_blocks, in_ranges
+
+
+class BlockPhaseProduct:
+    """``Z^T A Z`` over 3 x 3 blocks for fixed patterns of A and Z (module docstring).
+
+    Args:
+        a_pattern: Scalar CSR pattern of A (square, full column-sorted 3 x 3 blocks).
+        z_pattern: Scalar CSR pattern of Z (3 n x 3 n_c, full column-sorted 3 x 3 blocks).
+        threads: Threads of each pass (numba ``prange`` over block-row ranges).
+
+    Attributes:
+        pattern: Scalar CSR pattern of ``Z^T A Z`` (full 3 x 3 blocks).
+
+    """
+
+    def __init__(self, a_pattern: sp.csr_matrix, z_pattern: sp.csr_matrix,
+                 threads: int = 1) -> None:
+        if a_pattern.shape[0] != a_pattern.shape[1] or a_pattern.shape[0] != z_pattern.shape[0]:
+            raise InputError(f"BlockPhaseProduct: A of shape {a_pattern.shape} and Z of "
+                             f"shape {z_pattern.shape} do not make Z^T A Z")
+        ab_ptr, ab_idx = block_pattern(a_pattern)
+        zb_ptr, zb_idx = block_pattern(z_pattern)
+        n, n_c = ab_ptr.size - 1, z_pattern.shape[1] // 3
+        a_blocks = sp.csr_matrix((np.ones(ab_idx.size), ab_idx, ab_ptr), shape=(n, n))
+        z_blocks = sp.csr_matrix((np.ones(zb_idx.size), zb_idx, zb_ptr), shape=(n, n_c))
+        az = sp.csr_matrix(a_blocks @ z_blocks)
+        az.sort_indices()
+        zt = sp.csr_matrix(z_blocks.T)
+        zt.sort_indices()
+        # position of each transposed entry (hat j, vertex v) within Z's block row v
+        zt_pos = sp.csr_matrix((np.arange(zb_idx.size, dtype=np.float64) + 1, zb_idx, zb_ptr),
+                               shape=(n, n_c)).T.tocsr()
+        zt_pos.sort_indices()
+        c = sp.csr_matrix(z_blocks.T @ az)
+        c.sort_indices()
+        self._a = (np.asarray(a_pattern.indptr, dtype=np.int64), ab_ptr, ab_idx)
+        self._z = (np.asarray(z_pattern.indptr, dtype=np.int64), zb_ptr, zb_idx)
+        self._zt = (zt.indptr.astype(np.int64), zt.indices.astype(np.int64),
+                    (zt_pos.data - 1).astype(np.int64) - zb_ptr[zt.indices])
+        self._az = (az.indptr.astype(np.int64), az.indices.astype(np.int64),
+                    np.zeros((az.nnz, 9)))
+        self._c = (c.indptr.astype(np.int64), c.indices.astype(np.int64))
+        indptr, indices = full_blocks(*self._c)
+        self.pattern = sp.csr_matrix((np.zeros(indices.size), indices, indptr),
+                                     shape=(3 * n_c, 3 * n_c))
+        self._c_rows = indptr
+        self._cuts = (balanced_cuts(self._az[0], threads), balanced_cuts(self._c[0], threads))
+
+    def product(self, a_values: np.ndarray, z_values: np.ndarray) -> sp.csr_matrix:
+        """Return ``Z^T A Z`` (a new scipy CSR) from A's and Z's values in their CSR orders."""
+        if a_values.size != self._a[0][-1] or z_values.size != self._z[0][-1]:
+            raise InputError(f"BlockPhaseProduct.product: expected {self._a[0][-1]} values of "
+                             f"A and {self._z[0][-1]} of Z, got {a_values.size} and "
+                             f"{z_values.size}")
+        values = np.zeros(self.pattern.nnz)
+        in_ranges(_az_rows, _az_threads, self._cuts[0], self.pattern.shape[0] // 3, *self._a,
+                   a_values, *self._z, z_values, *self._az)
+        in_ranges(_ztaz_rows, _ztaz_threads, self._cuts[1], *self._zt, self._z[0], z_values,
+                   *self._az, *self._c, self._c_rows, values)
+        return sp.csr_matrix((values, self.pattern.indices, self.pattern.indptr),
+                             shape=self.pattern.shape)
+
+
+@numba.njit(cache=True, nogil=True)
+def _az_rows(lo: int, hi: int, n_cols: int, a_ptr: np.ndarray, ab_ptr: np.ndarray,
+             ab_idx: np.ndarray, a_val: np.ndarray, z_ptr: np.ndarray, zb_ptr: np.ndarray,
+             zb_idx: np.ndarray, z_val: np.ndarray, az_ptr: np.ndarray, az_idx: np.ndarray,
+             az_val: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """``(AZ)_{vk} = sum_w A_{vw} Z_{wk}`` for the block rows ``lo <= v < hi``.
+
+    ``A_{vw}[r, c]`` is at offset ``3 k + c`` of A's scalar row ``3 v + r`` (block k of the
+    row), ``Z_{wk}[c, m]`` at offset ``3 h + m`` of Z's scalar row ``3 w + c``; ``AZ_{vk}`` is
+    stored row-major, 9 values per block.
+    """
+    where = np.zeros(n_cols, dtype=np.int64)
+    for v in range(lo, hi):
+        for q in range(az_ptr[v], az_ptr[v + 1]):
+            where[az_idx[q]] = q
+            for m in range(9):
+                az_val[q, m] = 0.0
+        r0, r1, r2 = a_ptr[3 * v], a_ptr[3 * v + 1], a_ptr[3 * v + 2]
+        for k in range(ab_ptr[v + 1] - ab_ptr[v]):
+            w, o = ab_idx[ab_ptr[v] + k], 3 * k
+            a00, a01, a02 = a_val[r0 + o], a_val[r0 + o + 1], a_val[r0 + o + 2]
+            a10, a11, a12 = a_val[r1 + o], a_val[r1 + o + 1], a_val[r1 + o + 2]
+            a20, a21, a22 = a_val[r2 + o], a_val[r2 + o + 1], a_val[r2 + o + 2]
+            s0, s1, s2 = z_ptr[3 * w], z_ptr[3 * w + 1], z_ptr[3 * w + 2]
+            for h in range(zb_ptr[w + 1] - zb_ptr[w]):
+                q, p = where[zb_idx[zb_ptr[w] + h]], 3 * h
+                for m in range(3):
+                    z0, z1, z2 = z_val[s0 + p + m], z_val[s1 + p + m], z_val[s2 + p + m]
+                    az_val[q, m] += a00 * z0 + a01 * z1 + a02 * z2
+                    az_val[q, 3 + m] += a10 * z0 + a11 * z1 + a12 * z2
+                    az_val[q, 6 + m] += a20 * z0 + a21 * z1 + a22 * z2
+
+
+@numba.njit(cache=True, parallel=True)
+def _az_threads(cuts: np.ndarray, n_cols: int, a_ptr: np.ndarray, ab_ptr: np.ndarray,
+                ab_idx: np.ndarray, a_val: np.ndarray, z_ptr: np.ndarray, zb_ptr: np.ndarray,
+                zb_idx: np.ndarray, z_val: np.ndarray, az_ptr: np.ndarray, az_idx: np.ndarray,
+                az_val: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """:func:`_az_rows` over the block-row ranges ``cuts``, one per thread."""
+    for t in numba.prange(cuts.size - 1):
+        _az_rows(cuts[t], cuts[t + 1], n_cols, a_ptr, ab_ptr, ab_idx, a_val, z_ptr, zb_ptr,
+                 zb_idx, z_val, az_ptr, az_idx, az_val)
+
+
+@numba.njit(cache=True, nogil=True)
+def _ztaz_rows(lo: int, hi: int, zt_ptr: np.ndarray, zt_idx: np.ndarray, zt_pos: np.ndarray,
+               z_ptr: np.ndarray, z_val: np.ndarray, az_ptr: np.ndarray, az_idx: np.ndarray,
+               az_val: np.ndarray, c_ptr: np.ndarray, c_idx: np.ndarray, c_rows: np.ndarray,
+               c_val: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """``C_{jk} = sum_v Z_{vj}^T (AZ)_{vk}`` for the coarse block rows ``lo <= j < hi``.
+
+    ``zt_pos``: the block position of ``Z_{vj}`` within Z's block row v. A coarse row's
+    blocks are summed in a row buffer (``where``: block column -> slot), then written to C's
+    three scalar rows.
+    """
+    where = np.zeros(c_ptr.size - 1, dtype=np.int64)
+    widest = 1
+    for j in range(lo, hi):
+        widest = max(widest, c_ptr[j + 1] - c_ptr[j])
+    buf = np.zeros((widest, 9))
+    for j in range(lo, hi):
+        width = c_ptr[j + 1] - c_ptr[j]
+        for q in range(width):
+            where[c_idx[c_ptr[j] + q]] = q
+            for m in range(9):
+                buf[q, m] = 0.0
+        for e in range(zt_ptr[j], zt_ptr[j + 1]):
+            v, p = zt_idx[e], 3 * zt_pos[e]
+            s0, s1, s2 = z_ptr[3 * v] + p, z_ptr[3 * v + 1] + p, z_ptr[3 * v + 2] + p
+            for f in range(az_ptr[v], az_ptr[v + 1]):
+                q = where[az_idx[f]]
+                for m in range(3):
+                    z0, z1, z2 = z_val[s0 + m], z_val[s1 + m], z_val[s2 + m]
+                    for n in range(3):
+                        buf[q, 3 * m + n] += (z0 * az_val[f, n] + z1 * az_val[f, 3 + n]
+                                              + z2 * az_val[f, 6 + n])
+        for r in range(3):
+            row = c_rows[3 * j + r]
+            for q in range(width):
+                for n in range(3):
+                    c_val[row + 3 * q + n] = buf[q, 3 * r + n]
+
+
+@numba.njit(cache=True, parallel=True)
+def _ztaz_threads(cuts: np.ndarray, zt_ptr: np.ndarray, zt_idx: np.ndarray, zt_pos: np.ndarray,
+                  z_ptr: np.ndarray, z_val: np.ndarray, az_ptr: np.ndarray, az_idx: np.ndarray,
+                  az_val: np.ndarray, c_ptr: np.ndarray, c_idx: np.ndarray, c_rows: np.ndarray,
+                  c_val: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """:func:`_ztaz_rows` over the coarse block-row ranges ``cuts``, one per thread."""
+    for t in numba.prange(cuts.size - 1):
+        _ztaz_rows(cuts[t], cuts[t + 1], zt_ptr, zt_idx, zt_pos, z_ptr, z_val, az_ptr, az_idx,
+                   az_val, c_ptr, c_idx, c_rows, c_val)
+
+
+__all__ = ["BlockPhaseProduct"]

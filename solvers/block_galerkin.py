@@ -94,8 +94,9 @@ class BlockGalerkin:
     Attributes:
         mat: C as a PETSc ``MATSEQAIJ`` (block size 3) over :attr:`values`; flagged symmetric,
             as the shell's Newton matrices are (A symmetric gives C symmetric).
-        values: C's values in its scalar CSR order (:attr:`pattern`).
-        pattern: C's scalar CSR pattern (zero values), the next coarser product's pattern.
+        values: C's values in its scalar CSR order.
+        pattern: C as a scipy CSR over :attr:`values` and the index arrays PETSc reads (a
+            view: it changes with every product), the next coarser product's pattern.
 
     """
 
@@ -121,12 +122,11 @@ class BlockGalerkin:
         indptr, indices = full_blocks(*self._c_blocks)
         size = indptr.size - 1
         self.values = np.zeros(indices.size, dtype=PETSc.ScalarType)
-        self.pattern = sp.csr_matrix((np.zeros(indices.size), indices, indptr),
-                                     shape=(size, size))
         self._c_rows = indptr
         self._cuts = balanced_cuts(self._c_blocks[0], threads)
         # PETSc reads these arrays without a copy: they live as long as the matrix
         self._arrays = (indptr.astype(PETSc.IntType), indices.astype(PETSc.IntType), self.values)
+        self.pattern = sp.csr_matrix(self._arrays[::-1], shape=(size, size), copy=False)
         mat: Any = PETSc.Mat()
         self.mat = mat.createAIJWithArrays((size, size), self._arrays, bsize=3,
                                            comm=PETSc.COMM_SELF)
@@ -135,8 +135,7 @@ class BlockGalerkin:
 
     def csr(self) -> sp.csr_matrix:
         """C as a scipy CSR view of :attr:`values` (no copy)."""
-        return sp.csr_matrix((self.values, self.pattern.indices, self.pattern.indptr),
-                             shape=self.pattern.shape, copy=False)
+        return self.pattern
 
     def update(self, a_values: np.ndarray) -> None:
         """Compute C's values from A's (``a_values`` in the pattern's scalar CSR order)."""

@@ -152,8 +152,6 @@ class CoarseSpace:
         self.z: Any = None
         self._base: tuple[sp.csr_matrix, float] | None = None
         self._solver: SparseDirectSolver | None = None
-        self._az: Any = None
-        self._galerkin: Any = None
         self._gram: tuple[Any, sp.csr_matrix | None] = (None, None)
         self._penalty: tuple[Any, Any, Any] | None = None  # (G, G Z, (G Z)^T (G Z))
 
@@ -219,14 +217,8 @@ class CoarseSpace:
         return sums
 
     def _galerkin_matrix(self, fine: Any) -> sp.csr_matrix:
-        """``Z^T (A Z)``: two products, symbolic parts reused (cheaper than ``MatPtAP``)."""
-        if self._az is None:
-            self._az = fine.matMult(self.z)
-            self._galerkin = self.z.transposeMatMult(self._az)
-        else:
-            fine.matMult(self.z, result=self._az)
-            self.z.transposeMatMult(self._az, result=self._galerkin)
-        return self._csr(self._galerkin)
+        """``Z^T A Z`` of the fine Newton matrix (subclass: serial or distributed)."""
+        raise NotImplementedError
 
     def _gram_matrix(self) -> sp.csr_matrix:
         """``Z^T Z`` of the current fields (computed at the first shift-only update)."""

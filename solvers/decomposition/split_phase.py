@@ -14,7 +14,8 @@ used by the deflation preconditioner A-DEF2 (Tang, Nabben, Vuik & Erlangga, J. S
   each hat (3 per hat); each rank computes the entries of its own rows (from the full x)
   into the arrays PETSc reads (:class:`~solvers.shared_aij.SharedAIJ`), the column norms
   summed over the ranks;
-* ``Z^T (A Z)`` and ``(G Z)^T (G Z)`` are parallel products (symbolic parts reused); ``A_Z``
+* ``A Z`` and ``(G Z)^T (G Z)`` are parallel products (symbolic parts reused), ``Z^T (A Z)``
+  the sum of every rank's product of its own rows; ``A_Z``
   is small (3 columns per coarse hat) and is gathered to every rank and factorised there by
   the serial LDL^T, whose inertia says whether A is indefinite (as in the serial space);
 * ``Q r``: ``Z^T r`` gathered to every rank, the small solve, ``Z`` times the owned part.
@@ -97,6 +98,7 @@ class SplitPhaseSpace(CoarseSpace):
         start = range_start(comm, fine_sizes[0])
         indptr = np.searchsorted(rows[order] - start, np.arange(fine_sizes[0] + 1))
         self._own = (indptr, hat_dof[self.column].astype(PETSc.IntType), hat_sizes[1])
+        self._az: Any = None
         self._shared = SharedAIJ(comm, fine_sizes[0], fine_sizes[1], indptr, self._own[1],
                                  columns=hat_sizes)
         z = self.z = self._shared.mat
@@ -113,6 +115,27 @@ class SplitPhaseSpace(CoarseSpace):
         """Gather a distributed product of Z to every rank as one scipy matrix."""
         return _gathered(mat, self.comm)
 
+    def _own_rows(self) -> sp.csr_matrix:
+        """Return the rank's rows of Z: a scipy view of the values PETSc reads, PETSc columns."""
+        indptr, cols, n_cols = self._own
+        return sp.csr_matrix((self.values, cols, indptr), shape=(indptr.size - 1, n_cols),
+                             copy=False)
+
+    def _galerkin_matrix(self, fine: Any) -> sp.csr_matrix:
+        """``Z^T (A Z)``: ``A Z`` by PETSc (symbolic part reused), then ``Z_r^T (A Z)_r``.
+
+        Every rank multiplies its own rows of Z and of ``A Z`` (scipy) and the parts are summed
+        over the ranks: no PETSc transpose product, whose transposed Z and merged rows would
+        stay allocated between the Newton iterations.
+        """
+        if self._az is None:
+            self._az = fine.matMult(self.z)
+        else:
+            fine.matMult(self.z, result=self._az)
+        indptr, cols, data = self._az.getValuesCSR()
+        az = sp.csr_matrix((data, cols, indptr), shape=(indptr.size - 1, self._own[2]))
+        return _summed(sp.csr_matrix(self._own_rows().T @ az), self.comm)
+
     def _gram_matrix(self) -> sp.csr_matrix:
         """``Z^T Z``: every rank's ``Z_r^T Z_r`` of its own rows (scipy), summed over the ranks.
 
@@ -121,8 +144,7 @@ class SplitPhaseSpace(CoarseSpace):
         """
         mat, csr = self._gram
         if csr is None:
-            indptr, cols, n_cols = self._own
-            own = sp.csr_matrix((self.values, cols, indptr), shape=(indptr.size - 1, n_cols))
+            own = self._own_rows()
             csr = _summed(sp.csr_matrix(own.T @ own), self.comm)
             self._gram = (mat, csr)
         return csr

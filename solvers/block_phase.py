@@ -27,12 +27,70 @@ from models.shell.schedule import balanced_cuts
 from solvers.block_galerkin import block_pattern, full_blocks, in_ranges
 
 
+class TransposeBlockProduct:
+    """``C = Z^T B`` for fixed patterns of Z and B, both of full 3 x 3 blocks, on the same rows.
+
+    Each coarse block row ``C_{j.} = sum_v Z_{vj}^T B_{v.}`` is summed by one thread (ranges
+    of equal size), in a fixed order.
+
+    Args:
+        z_pattern: Scalar CSR pattern of Z (3 n x 3 n_c).
+        b_pattern: Scalar CSR pattern of B (3 n x 3 m).
+        threads: Threads of each product.
+
+    Attributes:
+        pattern: Scalar CSR pattern of C (3 n_c x 3 m, full 3 x 3 blocks, zero values).
+
+    """
+
+    def __init__(self, z_pattern: sp.csr_matrix, b_pattern: sp.csr_matrix,
+                 threads: int = 1) -> None:
+        if z_pattern.shape[0] != b_pattern.shape[0]:
+            raise InputError(f"TransposeBlockProduct: Z of shape {z_pattern.shape} and B of "
+                             f"shape {b_pattern.shape} do not make Z^T B")
+        zb_ptr, zb_idx = block_pattern(z_pattern)
+        bb_ptr, bb_idx = block_pattern(b_pattern)
+        n, n_c, m = zb_ptr.size - 1, z_pattern.shape[1] // 3, b_pattern.shape[1] // 3
+        z_blocks = sp.csr_matrix((np.ones(zb_idx.size), zb_idx, zb_ptr), shape=(n, n_c))
+        b_blocks = sp.csr_matrix((np.ones(bb_idx.size), bb_idx, bb_ptr), shape=(n, m))
+        zt = sp.csr_matrix(z_blocks.T)
+        zt.sort_indices()
+        # position of each transposed entry (hat j, vertex v) within Z's block row v
+        zt_pos = sp.csr_matrix((np.arange(zb_idx.size, dtype=np.float64) + 1, zb_idx, zb_ptr),
+                               shape=(n, n_c)).T.tocsr()
+        zt_pos.sort_indices()
+        c = sp.csr_matrix(zt @ b_blocks)
+        c.sort_indices()
+        self._z_rows = np.asarray(z_pattern.indptr, dtype=np.int64)
+        self._zt = (zt.indptr.astype(np.int64), zt.indices.astype(np.int64),
+                    (zt_pos.data - 1).astype(np.int64) - zb_ptr[zt.indices])
+        self._b = (np.asarray(b_pattern.indptr, dtype=np.int64), bb_ptr, bb_idx)
+        self._c = (c.indptr.astype(np.int64), c.indices.astype(np.int64))
+        indptr, indices = full_blocks(*self._c)
+        self.pattern = sp.csr_matrix((np.zeros(indices.size), indices, indptr),
+                                     shape=(3 * n_c, 3 * m))
+        self._c_rows = np.asarray(indptr, dtype=np.int64)
+        self._cuts = balanced_cuts(self._c[0], threads)
+
+    def product(self, z_values: np.ndarray, b_values: np.ndarray) -> sp.csr_matrix:
+        """Return ``Z^T B`` (a new scipy CSR) from Z's and B's values in their CSR orders."""
+        if z_values.size != self._z_rows[-1] or b_values.size != self._b[0][-1]:
+            raise InputError(f"TransposeBlockProduct.product: expected {self._z_rows[-1]} "
+                             f"values of Z and {self._b[0][-1]} of B, got {z_values.size} and "
+                             f"{b_values.size}")
+        values = np.zeros(self.pattern.nnz)
+        in_ranges(_ztb_rows, _ztb_threads, self._cuts, self.pattern.shape[1] // 3, *self._zt,
+                  self._z_rows, z_values, *self._b, b_values, *self._c, self._c_rows, values)
+        return sp.csr_matrix((values, self.pattern.indices, self.pattern.indptr),
+                             shape=self.pattern.shape)
+
+
 class BlockPhaseProduct:
     """``Z^T A Z`` over 3 x 3 blocks for fixed patterns of A and Z (module docstring).
 
     Args:
-        a_pattern: Scalar CSR pattern of A (square, full column-sorted 3 x 3 blocks).
-        z_pattern: Scalar CSR pattern of Z (3 n x 3 n_c, full column-sorted 3 x 3 blocks).
+        a_pattern: Scalar CSR pattern of A (square, full 3 x 3 blocks).
+        z_pattern: Scalar CSR pattern of Z (3 n x 3 n_c, full 3 x 3 blocks).
         threads: Threads of each pass (numba ``prange`` over block-row ranges).
 
     Attributes:
@@ -52,26 +110,16 @@ class BlockPhaseProduct:
         z_blocks = sp.csr_matrix((np.ones(zb_idx.size), zb_idx, zb_ptr), shape=(n, n_c))
         az = sp.csr_matrix(a_blocks @ z_blocks)
         az.sort_indices()
-        zt = sp.csr_matrix(z_blocks.T)
-        zt.sort_indices()
-        # position of each transposed entry (hat j, vertex v) within Z's block row v
-        zt_pos = sp.csr_matrix((np.arange(zb_idx.size, dtype=np.float64) + 1, zb_idx, zb_ptr),
-                               shape=(n, n_c)).T.tocsr()
-        zt_pos.sort_indices()
-        c = sp.csr_matrix(z_blocks.T @ az)
-        c.sort_indices()
+        az_rows, az_cols = full_blocks(az.indptr, az.indices)
         self._a = (np.asarray(a_pattern.indptr, dtype=np.int64), ab_ptr, ab_idx)
         self._z = (np.asarray(z_pattern.indptr, dtype=np.int64), zb_ptr, zb_idx)
-        self._zt = (zt.indptr.astype(np.int64), zt.indices.astype(np.int64),
-                    (zt_pos.data - 1).astype(np.int64) - zb_ptr[zt.indices])
-        self._az = (az.indptr.astype(np.int64), az.indices.astype(np.int64),
-                    np.zeros((az.nnz, 9)))
-        self._c = (c.indptr.astype(np.int64), c.indices.astype(np.int64))
-        indptr, indices = full_blocks(*self._c)
-        self.pattern = sp.csr_matrix((np.zeros(indices.size), indices, indptr),
-                                     shape=(3 * n_c, 3 * n_c))
-        self._c_rows = indptr
-        self._cuts = (balanced_cuts(self._az[0], threads), balanced_cuts(self._c[0], threads))
+        self._az = (az.indptr.astype(np.int64), az.indices.astype(np.int64), az_rows,
+                    np.zeros(az_cols.size))
+        self._transpose = TransposeBlockProduct(
+            z_pattern, sp.csr_matrix((self._az[3], az_cols, az_rows), shape=(3 * n, 3 * n_c)),
+            threads)
+        self.pattern = self._transpose.pattern
+        self._cuts = balanced_cuts(self._az[0], threads)
 
     def product(self, a_values: np.ndarray, z_values: np.ndarray) -> sp.csr_matrix:
         """Return ``Z^T A Z`` (a new scipy CSR) from A's and Z's values in their CSR orders."""
@@ -79,32 +127,29 @@ class BlockPhaseProduct:
             raise InputError(f"BlockPhaseProduct.product: expected {self._a[0][-1]} values of "
                              f"A and {self._z[0][-1]} of Z, got {a_values.size} and "
                              f"{z_values.size}")
-        values = np.zeros(self.pattern.nnz)
-        in_ranges(_az_rows, _az_threads, self._cuts[0], self.pattern.shape[0] // 3, *self._a,
-                   a_values, *self._z, z_values, *self._az)
-        in_ranges(_ztaz_rows, _ztaz_threads, self._cuts[1], *self._zt, self._z[0], z_values,
-                   *self._az, *self._c, self._c_rows, values)
-        return sp.csr_matrix((values, self.pattern.indices, self.pattern.indptr),
-                             shape=self.pattern.shape)
+        in_ranges(_az_rows, _az_threads, self._cuts, self.pattern.shape[0] // 3, *self._a,
+                  a_values, *self._z, z_values, *self._az)
+        return self._transpose.product(z_values, self._az[3])
 
 
 @numba.njit(cache=True, nogil=True)
 def _az_rows(lo: int, hi: int, n_cols: int, a_ptr: np.ndarray, ab_ptr: np.ndarray,
              ab_idx: np.ndarray, a_val: np.ndarray, z_ptr: np.ndarray, zb_ptr: np.ndarray,
              zb_idx: np.ndarray, z_val: np.ndarray, az_ptr: np.ndarray, az_idx: np.ndarray,
-             az_val: np.ndarray) -> None:  # pragma: no cover (compiled)
+             az_rows: np.ndarray, az_val: np.ndarray) -> None:  # pragma: no cover (compiled)
     """``(AZ)_{vk} = sum_w A_{vw} Z_{wk}`` for the block rows ``lo <= v < hi``.
 
-    ``A_{vw}[r, c]`` is at offset ``3 k + c`` of A's scalar row ``3 v + r`` (block k of the
-    row), ``Z_{wk}[c, m]`` at offset ``3 h + m`` of Z's scalar row ``3 w + c``; ``AZ_{vk}`` is
-    stored row-major, 9 values per block.
+    Every matrix is a scalar CSR of full 3 x 3 blocks: entry ``[r, c]`` of the k-th block of
+    block row v sits at offset ``3 k + c`` of scalar row ``3 v + r``.
     """
     where = np.zeros(n_cols, dtype=np.int64)
     for v in range(lo, hi):
         for q in range(az_ptr[v], az_ptr[v + 1]):
-            where[az_idx[q]] = q
-            for m in range(9):
-                az_val[q, m] = 0.0
+            where[az_idx[q]] = 3 * (q - az_ptr[v])
+        for r in range(3):
+            for e in range(az_rows[3 * v + r], az_rows[3 * v + r + 1]):
+                az_val[e] = 0.0
+        o0, o1, o2 = az_rows[3 * v], az_rows[3 * v + 1], az_rows[3 * v + 2]
         r0, r1, r2 = a_ptr[3 * v], a_ptr[3 * v + 1], a_ptr[3 * v + 2]
         for k in range(ab_ptr[v + 1] - ab_ptr[v]):
             w, o = ab_idx[ab_ptr[v] + k], 3 * k
@@ -116,34 +161,35 @@ def _az_rows(lo: int, hi: int, n_cols: int, a_ptr: np.ndarray, ab_ptr: np.ndarra
                 q, p = where[zb_idx[zb_ptr[w] + h]], 3 * h
                 for m in range(3):
                     z0, z1, z2 = z_val[s0 + p + m], z_val[s1 + p + m], z_val[s2 + p + m]
-                    az_val[q, m] += a00 * z0 + a01 * z1 + a02 * z2
-                    az_val[q, 3 + m] += a10 * z0 + a11 * z1 + a12 * z2
-                    az_val[q, 6 + m] += a20 * z0 + a21 * z1 + a22 * z2
+                    az_val[o0 + q + m] += a00 * z0 + a01 * z1 + a02 * z2
+                    az_val[o1 + q + m] += a10 * z0 + a11 * z1 + a12 * z2
+                    az_val[o2 + q + m] += a20 * z0 + a21 * z1 + a22 * z2
 
 
 @numba.njit(cache=True, parallel=True)
 def _az_threads(cuts: np.ndarray, n_cols: int, a_ptr: np.ndarray, ab_ptr: np.ndarray,
                 ab_idx: np.ndarray, a_val: np.ndarray, z_ptr: np.ndarray, zb_ptr: np.ndarray,
                 zb_idx: np.ndarray, z_val: np.ndarray, az_ptr: np.ndarray, az_idx: np.ndarray,
-                az_val: np.ndarray) -> None:  # pragma: no cover (compiled)
+                az_rows: np.ndarray, az_val: np.ndarray) -> None:  # pragma: no cover (compiled)
     """:func:`_az_rows` over the block-row ranges ``cuts``, one per thread."""
     for t in numba.prange(cuts.size - 1):
         _az_rows(cuts[t], cuts[t + 1], n_cols, a_ptr, ab_ptr, ab_idx, a_val, z_ptr, zb_ptr,
-                 zb_idx, z_val, az_ptr, az_idx, az_val)
+                 zb_idx, z_val, az_ptr, az_idx, az_rows, az_val)
 
 
 @numba.njit(cache=True, nogil=True)
-def _ztaz_rows(lo: int, hi: int, zt_ptr: np.ndarray, zt_idx: np.ndarray, zt_pos: np.ndarray,
-               z_ptr: np.ndarray, z_val: np.ndarray, az_ptr: np.ndarray, az_idx: np.ndarray,
-               az_val: np.ndarray, c_ptr: np.ndarray, c_idx: np.ndarray, c_rows: np.ndarray,
-               c_val: np.ndarray) -> None:  # pragma: no cover (compiled)
-    """``C_{jk} = sum_v Z_{vj}^T (AZ)_{vk}`` for the coarse block rows ``lo <= j < hi``.
+def _ztb_rows(lo: int, hi: int, n_cols: int, zt_ptr: np.ndarray, zt_idx: np.ndarray,
+              zt_pos: np.ndarray, z_ptr: np.ndarray, z_val: np.ndarray, b_ptr: np.ndarray,
+              bb_ptr: np.ndarray, bb_idx: np.ndarray, b_val: np.ndarray, c_ptr: np.ndarray,
+              c_idx: np.ndarray, c_rows: np.ndarray,
+              c_val: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """``C_{jk} = sum_v Z_{vj}^T B_{vk}`` for the coarse block rows ``lo <= j < hi``.
 
     ``zt_pos``: the block position of ``Z_{vj}`` within Z's block row v. A coarse row's
     blocks are summed in a row buffer (``where``: block column -> slot), then written to C's
     three scalar rows.
     """
-    where = np.zeros(c_ptr.size - 1, dtype=np.int64)
+    where = np.zeros(n_cols, dtype=np.int64)
     widest = 1
     for j in range(lo, hi):
         widest = max(widest, c_ptr[j + 1] - c_ptr[j])
@@ -157,13 +203,14 @@ def _ztaz_rows(lo: int, hi: int, zt_ptr: np.ndarray, zt_idx: np.ndarray, zt_pos:
         for e in range(zt_ptr[j], zt_ptr[j + 1]):
             v, p = zt_idx[e], 3 * zt_pos[e]
             s0, s1, s2 = z_ptr[3 * v] + p, z_ptr[3 * v + 1] + p, z_ptr[3 * v + 2] + p
-            for f in range(az_ptr[v], az_ptr[v + 1]):
-                q = where[az_idx[f]]
+            t0, t1, t2 = b_ptr[3 * v], b_ptr[3 * v + 1], b_ptr[3 * v + 2]
+            for k in range(bb_ptr[v + 1] - bb_ptr[v]):
+                q, o = where[bb_idx[bb_ptr[v] + k]], 3 * k
                 for m in range(3):
                     z0, z1, z2 = z_val[s0 + m], z_val[s1 + m], z_val[s2 + m]
                     for n in range(3):
-                        buf[q, 3 * m + n] += (z0 * az_val[f, n] + z1 * az_val[f, 3 + n]
-                                              + z2 * az_val[f, 6 + n])
+                        buf[q, 3 * m + n] += (z0 * b_val[t0 + o + n] + z1 * b_val[t1 + o + n]
+                                              + z2 * b_val[t2 + o + n])
         for r in range(3):
             row = c_rows[3 * j + r]
             for q in range(width):
@@ -172,14 +219,15 @@ def _ztaz_rows(lo: int, hi: int, zt_ptr: np.ndarray, zt_idx: np.ndarray, zt_pos:
 
 
 @numba.njit(cache=True, parallel=True)
-def _ztaz_threads(cuts: np.ndarray, zt_ptr: np.ndarray, zt_idx: np.ndarray, zt_pos: np.ndarray,
-                  z_ptr: np.ndarray, z_val: np.ndarray, az_ptr: np.ndarray, az_idx: np.ndarray,
-                  az_val: np.ndarray, c_ptr: np.ndarray, c_idx: np.ndarray, c_rows: np.ndarray,
-                  c_val: np.ndarray) -> None:  # pragma: no cover (compiled)
-    """:func:`_ztaz_rows` over the coarse block-row ranges ``cuts``, one per thread."""
+def _ztb_threads(cuts: np.ndarray, n_cols: int, zt_ptr: np.ndarray, zt_idx: np.ndarray,
+                 zt_pos: np.ndarray, z_ptr: np.ndarray, z_val: np.ndarray, b_ptr: np.ndarray,
+                 bb_ptr: np.ndarray, bb_idx: np.ndarray, b_val: np.ndarray, c_ptr: np.ndarray,
+                 c_idx: np.ndarray, c_rows: np.ndarray,
+              c_val: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """:func:`_ztb_rows` over the coarse block-row ranges ``cuts``, one per thread."""
     for t in numba.prange(cuts.size - 1):
-        _ztaz_rows(cuts[t], cuts[t + 1], zt_ptr, zt_idx, zt_pos, z_ptr, z_val, az_ptr, az_idx,
-                   az_val, c_ptr, c_idx, c_rows, c_val)
+        _ztb_rows(cuts[t], cuts[t + 1], n_cols, zt_ptr, zt_idx, zt_pos, z_ptr, z_val, b_ptr, bb_ptr,
+                  bb_idx, b_val, c_ptr, c_idx, c_rows, c_val)
 
 
-__all__ = ["BlockPhaseProduct"]
+__all__ = ["BlockPhaseProduct", "TransposeBlockProduct"]

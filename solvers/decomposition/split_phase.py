@@ -15,7 +15,7 @@ used by the deflation preconditioner A-DEF2 (Tang, Nabben, Vuik & Erlangga, J. S
   into the arrays PETSc reads (:class:`~solvers.shared_aij.SharedAIJ`), the column norms
   summed over the ranks;
 * ``A Z`` and ``(G Z)^T (G Z)`` are parallel products (symbolic parts reused), ``Z^T (A Z)``
-  the sum of every rank's product of its own rows; ``A_Z``
+  the sum of every rank's product of its own rows (3 x 3 blocks); ``A_Z``
   is small (3 columns per coarse hat) and is gathered to every rank and factorised there by
   the serial LDL^T, whose inertia says whether A is indefinite (as in the serial space);
 * ``Q r``: ``Z^T r`` gathered to every rank, the small solve, ``Z`` times the owned part.
@@ -28,7 +28,8 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from models.backend import PETSc
+from models.backend import MPI, PETSc
+from solvers.block_phase import TransposeBlockProduct
 from solvers.phase_space import CoarseSpace
 from solvers.shared_aij import SharedAIJ, range_start
 
@@ -52,6 +53,36 @@ def _summed(part: sp.csr_matrix, comm: Any) -> sp.csr_matrix:
                             np.concatenate([q[1] for q in parts]))), shape=part.shape)
     total.sum_duplicates()
     return total
+
+
+class FixedSum:
+    """The sum over the ranks of every rank's matrix of a fixed pattern, on every rank.
+
+    The union of the ranks' patterns and each rank's positions in it are found once
+    (collective); each sum is one ``MPI_Allreduce`` of the union's values.
+
+    Args:
+        part: This rank's matrix (its pattern; the values come with each call).
+        comm: Communicator.
+
+    """
+
+    def __init__(self, part: sp.csr_matrix, comm: Any) -> None:
+        self.comm, self.shape = comm, part.shape
+        coo = part.tocoo()  # the CSR order of part's values
+        keys = coo.row.astype(np.int64) * part.shape[1] + coo.col
+        union = np.unique(np.concatenate(comm.allgather(keys)))
+        self._at = np.searchsorted(union, keys)
+        rows, self._cols = np.divmod(union, part.shape[1])
+        self._indptr = np.searchsorted(rows, np.arange(part.shape[0] + 1))
+        self._size = union.size
+
+    def __call__(self, values: np.ndarray) -> sp.csr_matrix:
+        """Return the sum over the ranks of the matrices with these values (collective)."""
+        total = np.zeros(self._size)
+        total[self._at] = values
+        self.comm.Allreduce(MPI.IN_PLACE, total, op=MPI.SUM)
+        return sp.csr_matrix((total, self._cols, self._indptr), shape=self.shape)
 
 
 def _rows_kept(m: sp.csr_matrix, rows: np.ndarray) -> sp.csr_matrix:
@@ -99,6 +130,8 @@ class SplitPhaseSpace(CoarseSpace):
         indptr = np.searchsorted(rows[order] - start, np.arange(fine_sizes[0] + 1))
         self._own = (indptr, hat_dof[self.column].astype(PETSc.IntType), hat_sizes[1])
         self._az: Any = None
+        self._transpose: TransposeBlockProduct | None = None
+        self._sum: FixedSum | None = None
         self._shared = SharedAIJ(comm, fine_sizes[0], fine_sizes[1], indptr, self._own[1],
                                  columns=hat_sizes)
         z = self.z = self._shared.mat
@@ -124,17 +157,23 @@ class SplitPhaseSpace(CoarseSpace):
     def _galerkin_matrix(self, fine: Any) -> sp.csr_matrix:
         """``Z^T (A Z)``: ``A Z`` by PETSc (symbolic part reused), then ``Z_r^T (A Z)_r``.
 
-        Every rank multiplies its own rows of Z and of ``A Z`` (scipy) and the parts are summed
-        over the ranks: no PETSc transpose product, whose transposed Z and merged rows would
-        stay allocated between the Newton iterations.
+        Every rank multiplies its own rows of Z and of ``A Z`` over 3 x 3 blocks
+        (:class:`solvers.block_phase.TransposeBlockProduct`) and the parts are summed over the
+        ranks on a pattern fixed at the first product (:class:`FixedSum`): no PETSc transpose
+        product, whose transposed Z and merged rows would stay allocated between iterations.
         """
         if self._az is None:
             self._az = fine.matMult(self.z)
         else:
             fine.matMult(self.z, result=self._az)
         indptr, cols, data = self._az.getValuesCSR()
-        az = sp.csr_matrix((data, cols, indptr), shape=(indptr.size - 1, self._own[2]))
-        return _summed(sp.csr_matrix(self._own_rows().T @ az), self.comm)
+        if self._transpose is None:
+            az = sp.csr_matrix((data, cols, indptr), shape=(indptr.size - 1, self._own[2]))
+            self._transpose = TransposeBlockProduct(self._own_rows(), az)
+        part = self._transpose.product(self.values, data)
+        if self._sum is None:
+            self._sum = FixedSum(part, self.comm)
+        return self._sum(part.data)
 
     def _gram_matrix(self) -> sp.csr_matrix:
         """``Z^T Z``: every rank's ``Z_r^T Z_r`` of its own rows (scipy), summed over the ranks.

@@ -10,7 +10,7 @@ import shellcases
 from meshes.errors import InputError
 from meshes.shells import grid_plate
 from solvers.block_galerkin import BlockGalerkin, GalerkinChain, block_pattern
-from solvers.block_phase import BlockPhaseProduct
+from solvers.block_phase import BlockPhaseProduct, TransposeBlockProduct
 from solvers.multigrid import ShellHierarchy, galerkin_levels, vector_prolongation
 from solvers.phase_space import PhaseSpace, hat_matrix, petsc_aij, scipy_csr
 
@@ -97,3 +97,26 @@ def test_phase_space_product_equals_scipy(threads: int) -> None:
     print(f"Z {z.shape}, {z.nnz} entries; max |C - Z^T A Z| / max |Z^T A Z| = {err:.1e}")
     assert err < 1e-14
     assert np.array_equal(mine, BlockPhaseProduct(hess, z).product(hess.data, z.data).toarray())
+
+
+def random_blocks(rows: int, cols: int, seed: int) -> sp.csr_matrix:
+    """A rectangular matrix of full 3 x 3 blocks on a random vertex pattern."""
+    rng = np.random.default_rng(seed)
+    pattern = sp.random(rows, cols, density=0.3, random_state=seed)
+    blocks = sp.kron(pattern, np.ones((3, 3)), format="csr")
+    blocks.data = rng.standard_normal(blocks.nnz)
+    blocks.sort_indices()
+    return blocks
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_transpose_product_of_rectangular_blocks_equals_scipy(threads: int) -> None:
+    """``Z^T B`` of two block matrices on the same rows (a rank's own rows of Z and A Z)."""
+    z, b = random_blocks(25, 8, seed=6), random_blocks(25, 11, seed=7)
+    product = TransposeBlockProduct(z, b, threads=threads)
+    mine = product.product(z.data, b.data).toarray()
+    expected = (z.T @ b).toarray()
+    assert mine.shape == (24, 33)
+    assert np.max(np.abs(mine - expected)) <= 1e-14 * np.max(np.abs(expected))
+    with pytest.raises(InputError, match="do not make Z\\^T B"):
+        TransposeBlockProduct(z, random_blocks(20, 11, seed=7))

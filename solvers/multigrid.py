@@ -725,8 +725,10 @@ class KrylovBase:
         """CG to the forcing term; :meth:`_failed` when CG does not pass.
 
         With ``eigen_estimate = "solve"`` a failed CG whose Chebyshev bounds come from an
-        earlier Newton iteration is repeated once with new bounds (an underestimated
-        ``lambda_max`` makes the smoother amplify, the preconditioner indefinite); bounds
+        earlier Newton iteration makes the next solve (the shell Newton's next shift)
+        estimate new ones: an underestimated ``lambda_max`` makes the smoother amplify, the
+        preconditioner indefinite. The failed CG itself is not repeated with new bounds (a
+        failure is negative curvature of the shifted matrix: docs/notes/multigrid.md). Bounds
         estimated in this Newton iteration stay valid for its shifted retries, since a shift
         ``tau`` only moves the spectrum of ``(D + tau)^{-1} (A + tau I)`` towards 1.
         """
@@ -735,7 +737,6 @@ class KrylovBase:
             x = self._accepted_cg(rhs)
             if x is None and self._bounds_stale and self.options.eigen_estimate == "solve":
                 self.renew_bounds()
-                x = self._accepted_cg(rhs)
             return x if x is not None else self._failed(rhs)
         finally:
             self.stats.solves += 1

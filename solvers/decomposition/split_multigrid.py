@@ -28,8 +28,8 @@ its own vertices on every level and PETSc does the products and the messages.
   A CG that fails (negative curvature, an indefinite coarse matrix) returns NaN, and the
   shell Newton moves to its next shift. The Chebyshev bounds are estimated at every set-up,
   or with ``eigen_estimate = "solve"`` once per Newton solve (Jacobi diagonals refreshed at
-  every set-up; a failed CG with bounds from an earlier Newton iteration is repeated once
-  with new bounds), as in the serial solver.
+  every set-up; a failed CG with bounds from an earlier Newton iteration makes the next
+  solve estimate new ones), as in the serial solver.
 * With ``options.phase_space`` the wrinkle-phase coarse space of :mod:`.split_phase` deflates
   CG (A-DEF2 around the V-cycle, from ``x_0 = Q b``), as in the serial solver; with an
   indefinite ``Z^T A Z`` that matrix's CG runs without the correction.

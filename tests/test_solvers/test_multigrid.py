@@ -226,6 +226,28 @@ def test_eigen_estimate_once_per_solve_reuses_set_up() -> None:
     assert per_setup.stats.eigen_estimates == 3
 
 
+def test_failed_cg_with_stale_bounds_renews_them_without_repeating() -> None:
+    """An indefinite shifted matrix fails CG once; the next solve estimates new bounds."""
+    hier = ShellHierarchy.build(*grid_plate(6, 6), levels=3)
+    energy, x0 = compressed_plate(hier, clusters=32)
+    ev = energy.evaluate(x0, hessian="gauss_newton")
+    assert ev.hess is not None
+    mg = MultigridLinearSystem(hier.prolongations(),
+                               MultigridOptions(rtol=1e-10, eigen_estimate="solve"))
+    assert np.all(np.isfinite(solve_once(mg, ev)))
+    assert mg.stats.eigen_estimates == 1
+    mg.set_gradient_norm(1.0)  # a new Newton iteration: the bounds count as stale
+    tau = -float(np.median(ev.hess.diagonal()))  # A + tau I: an indefinite matrix
+    solves, estimates = len(mg.stats.iterations), mg.stats.eigen_estimates
+    assert np.all(np.isnan(solve_once(mg, ev, tau)))
+    assert len(mg.stats.iterations) == solves + 1  # one CG, not repeated
+    assert mg.stats.eigen_estimates == estimates + 1  # new bounds for the next solve
+    x = solve_once(mg, ev, 1.0)
+    residual = mg.true_residual(x, -ev.grad)
+    print(f"CG its {mg.stats.iterations}, true residual after the renewal {residual:.1e}")
+    assert residual <= 1e-10 and mg.stats.eigen_estimates == estimates + 1
+
+
 @pytest.mark.parametrize("threads", [1, 2])
 def test_sbaij_level_products_match_aij(threads: int) -> None:
     hier = ShellHierarchy.build(*grid_plate(6, 6), levels=3)

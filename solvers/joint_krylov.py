@@ -149,6 +149,7 @@ class JointKrylovSystem(KrylovBase):
         """``(x, iterations, converged)`` of preconditioned CG to ``||r|| <= eta ||b||``."""
         x = np.zeros_like(rhs)
         r = np.array(rhs, dtype=np.float64)
+        self.negative_curvature = False
         stop = self.eta * float(np.linalg.norm(r))
         if stop == 0.0:
             return x, 0, True
@@ -161,6 +162,7 @@ class JointKrylovSystem(KrylovBase):
             q = self.apply(p)
             curvature = float(p @ q)
             if not curvature > 0.0:  # negative curvature: M is not SPD
+                self.negative_curvature = True
                 return x, k, False
             alpha = rz / curvature
             x += alpha * p

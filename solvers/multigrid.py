@@ -672,7 +672,8 @@ class KrylovBase:
 
     The forcing term (:func:`forcing_term`), the once-per-solve Chebyshev bounds, the phase
     space's test-field state and the set-up counts; a subclass sets ``self.phase`` and
-    ``self._operators`` (the level operators whose state it increases for new bounds).
+    ``self._operators`` (the level operators whose state it increases for new bounds), and
+    its CG sets ``self.negative_curvature`` (the last CG met ``p^T A p <= 0``).
 
     Args:
         options: Krylov / multigrid options.
@@ -688,6 +689,7 @@ class KrylovBase:
         self._operators: list[Any] = []
         self._estimate_due = True
         self._bounds_stale = False
+        self.negative_curvature = False
         self._state: tuple[np.ndarray, np.ndarray] | None = None
         self._fields_stale = True
 
@@ -725,18 +727,21 @@ class KrylovBase:
         """CG to the forcing term; :meth:`_failed` when CG does not pass.
 
         With ``eigen_estimate = "solve"`` a failed CG whose Chebyshev bounds come from an
-        earlier Newton iteration makes the next solve (the shell Newton's next shift)
-        estimate new ones: an underestimated ``lambda_max`` makes the smoother amplify, the
-        preconditioner indefinite. The failed CG itself is not repeated with new bounds (a
-        failure is negative curvature of the shifted matrix: docs/notes/multigrid.md). Bounds
-        estimated in this Newton iteration stay valid for its shifted retries, since a shift
-        ``tau`` only moves the spectrum of ``(D + tau)^{-1} (A + tau I)`` towards 1.
+        earlier Newton iteration gets new bounds (an underestimated ``lambda_max`` makes the
+        smoother amplify, the preconditioner indefinite) and is repeated once with them,
+        unless it met negative curvature of the matrix itself (``negative_curvature``, set
+        by the subclass's CG: ``p^T A p <= 0``, which no preconditioner changes); then the
+        shell Newton's next shift uses the new bounds. Bounds estimated in this Newton
+        iteration stay valid for its shifted retries, since a shift ``tau`` only moves the
+        spectrum of ``(D + tau)^{-1} (A + tau I)`` towards 1.
         """
         start = time.perf_counter()
         try:
             x = self._accepted_cg(rhs)
             if x is None and self._bounds_stale and self.options.eigen_estimate == "solve":
                 self.renew_bounds()
+                if not self.negative_curvature:
+                    x = self._accepted_cg(rhs)
             return x if x is not None else self._failed(rhs)
         finally:
             self.stats.solves += 1
@@ -1029,6 +1034,7 @@ class MultigridLinearSystem(KrylovBase):
         """CG from zero; the solution if it converged to a true residual within the slack."""
         x, its, reason = self._cg(rhs)
         self.stats.iterations.append(its)
+        self.negative_curvature = reason == PETSc.KSP.ConvergedReason.DIVERGED_INDEFINITE_MAT
         return self._kept(x, rhs, reason > 0)
 
     def _cg(self, rhs: np.ndarray) -> tuple[np.ndarray, int, int]:

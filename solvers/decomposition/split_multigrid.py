@@ -28,8 +28,8 @@ its own vertices on every level and PETSc does the products and the messages.
   A CG that fails (negative curvature, an indefinite coarse matrix) returns NaN, and the
   shell Newton moves to its next shift. The Chebyshev bounds are estimated at every set-up,
   or with ``eigen_estimate = "solve"`` once per Newton solve (Jacobi diagonals refreshed at
-  every set-up; a failed CG with bounds from an earlier Newton iteration makes the next
-  solve estimate new ones), as in the serial solver.
+  every set-up; a failed CG with bounds from an earlier Newton iteration gets new ones and
+  is repeated unless it met negative curvature), as in the serial solver.
 * With ``options.phase_space`` the wrinkle-phase coarse space of :mod:`.split_phase` deflates
   CG (A-DEF2 around the V-cycle, from ``x_0 = Q b``), as in the serial solver; with an
   indefinite ``Z^T A Z`` that matrix's CG runs without the correction.
@@ -364,7 +364,9 @@ class SplitMultigridSystem(KrylovBase):
         ksp.setTolerances(rtol=self.eta, atol=0.0, max_it=self.options.max_iterations)
         ksp.solve(b, x)
         self.stats.iterations.append(int(ksp.getIterationNumber()))
-        if ksp.getConvergedReason() <= 0:
+        reason = ksp.getConvergedReason()
+        self.negative_curvature = reason == PETSc.KSP.ConvergedReason.DIVERGED_INDEFINITE_MAT
+        if reason <= 0:
             return None
         self._operators[-1].mult(x, r)
         r.aypx(-1.0, b)

@@ -226,8 +226,8 @@ def test_eigen_estimate_once_per_solve_reuses_set_up() -> None:
     assert per_setup.stats.eigen_estimates == 3
 
 
-def test_failed_cg_with_stale_bounds_renews_them_without_repeating() -> None:
-    """An indefinite shifted matrix fails CG once; the next solve estimates new bounds."""
+def test_negative_curvature_with_stale_bounds_renews_them_without_repeating() -> None:
+    """CG meets negative curvature of an indefinite shifted matrix: one CG, new bounds next."""
     hier = ShellHierarchy.build(*grid_plate(6, 6), levels=3)
     energy, x0 = compressed_plate(hier, clusters=32)
     ev = energy.evaluate(x0, hessian="gauss_newton")
@@ -240,6 +240,7 @@ def test_failed_cg_with_stale_bounds_renews_them_without_repeating() -> None:
     tau = -float(np.median(ev.hess.diagonal()))  # A + tau I: an indefinite matrix
     solves, estimates = len(mg.stats.iterations), mg.stats.eigen_estimates
     assert np.all(np.isnan(solve_once(mg, ev, tau)))
+    assert mg.negative_curvature
     assert len(mg.stats.iterations) == solves + 1  # one CG, not repeated
     assert mg.stats.eigen_estimates == estimates + 1  # new bounds for the next solve
     x = solve_once(mg, ev, 1.0)

@@ -60,7 +60,9 @@ class JointKrylovSystem(KrylovBase):
     Same interface as the shell's Newton-system solvers (``factorize(ev, tau)``,
     ``solve(b)``, ``times()``). ``ev`` is a joint evaluation whose ``hess`` and
     ``penalty_factor`` are ``blockdiag(K_x, K_u)`` and ``F`` and whose ``blocks`` are
-    ``(K_x, K_u)`` (:class:`solvers.monolithic.CoupledEval`).
+    ``(K_x, K_u)`` (:class:`solvers.monolithic.CoupledEval`). Its CG leaves
+    ``negative_curvature`` False: a failed CG with stale Chebyshev bounds is always repeated
+    with new ones (docs/notes/multigrid.md, "Repeating a failed CG").
 
     Args:
         shell: The shell's multigrid (its hierarchy ends at the shell's ``3 n`` dofs); its
@@ -149,7 +151,6 @@ class JointKrylovSystem(KrylovBase):
         """``(x, iterations, converged)`` of preconditioned CG to ``||r|| <= eta ||b||``."""
         x = np.zeros_like(rhs)
         r = np.array(rhs, dtype=np.float64)
-        self.negative_curvature = False
         stop = self.eta * float(np.linalg.norm(r))
         if stop == 0.0:
             return x, 0, True
@@ -162,7 +163,6 @@ class JointKrylovSystem(KrylovBase):
             q = self.apply(p)
             curvature = float(p @ q)
             if not curvature > 0.0:  # negative curvature: M is not SPD
-                self.negative_curvature = True
                 return x, k, False
             alpha = rz / curvature
             x += alpha * p

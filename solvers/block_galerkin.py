@@ -177,6 +177,38 @@ class GalerkinChain:
         return [product.mat for product in reversed(self.products)]
 
 
+@numba.njit(cache=True, nogil=True)
+def row_buffer(c_ptr: np.ndarray, lo: int, hi: int) -> np.ndarray:  # pragma: no cover
+    """Return a buffer of 3 x 3 blocks as wide as the widest block row ``lo .. hi`` of C."""
+    widest = 1
+    for i in range(lo, hi):
+        widest = max(widest, c_ptr[i + 1] - c_ptr[i])
+    return np.zeros((widest, 9))
+
+
+@numba.njit(cache=True, nogil=True)
+def open_row(i: int, c_ptr: np.ndarray, c_idx: np.ndarray, where: np.ndarray,
+             buf: np.ndarray) -> int:  # pragma: no cover (compiled)
+    """Zero the buffer for C's block row i, ``where[column] = slot``; return the row's width."""
+    width = c_ptr[i + 1] - c_ptr[i]
+    for q in range(width):
+        where[c_idx[c_ptr[i] + q]] = q
+        for m in range(9):
+            buf[q, m] = 0.0
+    return width
+
+
+@numba.njit(cache=True, nogil=True)
+def close_row(i: int, width: int, buf: np.ndarray, c_rows: np.ndarray,
+              c_val: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """Write the buffer of C's block row i (row-major blocks) into its three scalar rows."""
+    for r in range(3):
+        row = c_rows[3 * i + r]
+        for q in range(width):
+            for c in range(3):
+                c_val[row + 3 * q + c] = buf[q, 3 * r + c]
+
+
 @numba.njit(cache=True, parallel=True)
 def _galerkin_threads(cuts: np.ndarray, a_ptr: np.ndarray, ab_ptr: np.ndarray,
                       ab_idx: np.ndarray, a_val: np.ndarray, s_ptr: np.ndarray,
@@ -203,16 +235,9 @@ def _galerkin_rows(lo: int, hi: int, a_ptr: np.ndarray, ab_ptr: np.ndarray, ab_i
     block column -> buffer slot), then written to C's three scalar rows.
     """
     where = np.zeros(c_ptr.size - 1, dtype=np.int64)
-    widest = 0
+    buf = row_buffer(c_ptr, lo, hi)
     for i in range(lo, hi):
-        widest = max(widest, c_ptr[i + 1] - c_ptr[i])
-    buf = np.zeros((widest, 9))
-    for i in range(lo, hi):
-        width = c_ptr[i + 1] - c_ptr[i]
-        for q in range(width):
-            where[c_idx[c_ptr[i] + q]] = q
-            for m in range(9):
-                buf[q, m] = 0.0
+        width = open_row(i, c_ptr, c_idx, where, buf)
         for e in range(st_ptr[i], st_ptr[i + 1]):
             a, w_a = st_idx[e], st_val[e]
             r0, r1, r2 = a_ptr[3 * a], a_ptr[3 * a + 1], a_ptr[3 * a + 2]
@@ -234,11 +259,8 @@ def _galerkin_rows(lo: int, hi: int, a_ptr: np.ndarray, ab_ptr: np.ndarray, ab_i
                     buf[q, 6] += w * v6
                     buf[q, 7] += w * v7
                     buf[q, 8] += w * v8
-        for r in range(3):
-            row = c_scalar_ptr[3 * i + r]
-            for q in range(width):
-                for c in range(3):
-                    c_val[row + 3 * q + c] = buf[q, 3 * r + c]
+        close_row(i, width, buf, c_scalar_ptr, c_val)
 
 
-__all__ = ["BlockGalerkin", "GalerkinChain", "block_pattern", "full_blocks", "in_ranges"]
+__all__ = ["BlockGalerkin", "GalerkinChain", "block_pattern", "close_row", "full_blocks",
+           "in_ranges", "open_row", "row_buffer"]

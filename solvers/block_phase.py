@@ -24,7 +24,14 @@ import scipy.sparse as sp
 
 from meshes.errors import InputError
 from models.shell.schedule import balanced_cuts
-from solvers.block_galerkin import block_pattern, full_blocks, in_ranges
+from solvers.block_galerkin import (
+    block_pattern,
+    close_row,
+    full_blocks,
+    in_ranges,
+    open_row,
+    row_buffer,
+)
 
 
 class TransposeBlockProduct:
@@ -190,16 +197,9 @@ def _ztb_rows(lo: int, hi: int, n_cols: int, zt_ptr: np.ndarray, zt_idx: np.ndar
     three scalar rows.
     """
     where = np.zeros(n_cols, dtype=np.int64)
-    widest = 1
+    buf = row_buffer(c_ptr, lo, hi)
     for j in range(lo, hi):
-        widest = max(widest, c_ptr[j + 1] - c_ptr[j])
-    buf = np.zeros((widest, 9))
-    for j in range(lo, hi):
-        width = c_ptr[j + 1] - c_ptr[j]
-        for q in range(width):
-            where[c_idx[c_ptr[j] + q]] = q
-            for m in range(9):
-                buf[q, m] = 0.0
+        width = open_row(j, c_ptr, c_idx, where, buf)
         for e in range(zt_ptr[j], zt_ptr[j + 1]):
             v, p = zt_idx[e], 3 * zt_pos[e]
             s0, s1, s2 = z_ptr[3 * v] + p, z_ptr[3 * v + 1] + p, z_ptr[3 * v + 2] + p
@@ -211,11 +211,7 @@ def _ztb_rows(lo: int, hi: int, n_cols: int, zt_ptr: np.ndarray, zt_idx: np.ndar
                     for n in range(3):
                         buf[q, 3 * m + n] += (z0 * b_val[t0 + o + n] + z1 * b_val[t1 + o + n]
                                               + z2 * b_val[t2 + o + n])
-        for r in range(3):
-            row = c_rows[3 * j + r]
-            for q in range(width):
-                for n in range(3):
-                    c_val[row + 3 * q + n] = buf[q, 3 * r + n]
+        close_row(j, width, buf, c_rows, c_val)
 
 
 @numba.njit(cache=True, parallel=True)

@@ -95,8 +95,8 @@ class BlockGalerkin:
         mat: C as a PETSc ``MATSEQAIJ`` (block size 3) over :attr:`values`; flagged symmetric,
             as the shell's Newton matrices are (A symmetric gives C symmetric).
         values: C's values in its scalar CSR order.
-        pattern: C as a scipy CSR over :attr:`values` and the index arrays PETSc reads (a
-            view: it changes with every product), the next coarser product's pattern.
+        csr: C as a scipy CSR over :attr:`values` and the index arrays PETSc reads (a view:
+            it changes with every product); its pattern is the next coarser product's.
 
     """
 
@@ -126,16 +126,12 @@ class BlockGalerkin:
         self._cuts = balanced_cuts(self._c_blocks[0], threads)
         # PETSc reads these arrays without a copy: they live as long as the matrix
         self._arrays = (indptr.astype(PETSc.IntType), indices.astype(PETSc.IntType), self.values)
-        self.pattern = sp.csr_matrix(self._arrays[::-1], shape=(size, size), copy=False)
+        self.csr = sp.csr_matrix(self._arrays[::-1], shape=(size, size), copy=False)
         mat: Any = PETSc.Mat()
         self.mat = mat.createAIJWithArrays((size, size), self._arrays, bsize=3,
                                            comm=PETSc.COMM_SELF)
         self.mat.assemble()
         self.mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-
-    def csr(self) -> sp.csr_matrix:
-        """C as a scipy CSR view of :attr:`values` (no copy)."""
-        return self.pattern
 
     def update(self, a_values: np.ndarray) -> None:
         """Compute C's values from A's (``a_values`` in the pattern's scalar CSR order)."""
@@ -166,7 +162,7 @@ class GalerkinChain:
         self.products: list[BlockGalerkin] = []
         for s in reversed(vertex_prolongations):
             self.products.append(BlockGalerkin(pattern, s, threads))
-            pattern = self.products[-1].pattern
+            pattern = self.products[-1].csr
 
     def update(self, fine_values: np.ndarray) -> list[Any]:
         """Recompute every level from the finest matrix's values; their matrices, coarse first."""

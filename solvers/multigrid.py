@@ -587,7 +587,7 @@ class FineMatrix:
         mat.assemble()
         self.mat = mat
 
-    def pattern(self) -> sp.csr_matrix:
+    def csr(self) -> sp.csr_matrix:
         """Return the current values as a scipy CSR view of the arrays PETSc reads."""
         n = self.indptr.size - 1
         return sp.csr_matrix((self.values, self.indices, self.indptr), shape=(n, n), copy=False)
@@ -905,7 +905,7 @@ class MultigridLinearSystem(KrylovBase):
             x, y = self._state if self._state is not None else (self.phase.rest,) * 2
             self.phase.set_fields(x, y)
             self._fields_stale = False
-        report = self.phase.update(self._fine.pattern(), g, tau, shift_only=shift_only)
+        report = self.phase.update(self._fine.csr(), g, tau, shift_only=shift_only)
         self._phase_ready = report.usable_spd
         return report
 
@@ -930,7 +930,7 @@ class MultigridLinearSystem(KrylovBase):
         """``A_l = P_l^T A_{l+1} P_l`` from the finest down, over 3 x 3 vertex blocks."""
         assert self._fine is not None  # set by factorize (internal invariant)
         if self._chain is None:
-            self._chain = GalerkinChain(self._fine.pattern(),
+            self._chain = GalerkinChain(self._fine.csr(),
                                         tuple(p[::3, ::3] for p in self.p_scipy),
                                         self.options.threads)
         self._galerkin = [*self._chain.update(self._fine.values), self._fine.mat]
@@ -938,7 +938,7 @@ class MultigridLinearSystem(KrylovBase):
     def _update_coarse(self) -> None:
         """Assemble ``A_0 + G_0^T G_0`` (the constant penalty part kept) into the coarse matrix."""
         assert self._chain is not None  # set with the Galerkin levels (internal invariant)
-        a0 = self._chain.products[-1].csr()
+        a0 = self._chain.products[-1].csr
         penalty = self._coarse_penalty
         total = a0 if penalty is None else (a0 + penalty).tocsr()
         total.sort_indices()

@@ -39,7 +39,7 @@ def test_block_product_equals_the_scalar_triple_product(threads: int) -> None:
         product = BlockGalerkin(a, s, threads=t)
         for _ in range(2):  # the second product writes over the first
             product.update(a.data)
-        results[t] = product.csr().toarray()
+        results[t] = product.csr.toarray()
         assert np.array_equal(scipy_csr(product.mat).toarray(), results[t])  # PETSc's view
     err = np.max(np.abs(results[threads] - expected)) / np.max(np.abs(expected))
     print(f"threads {threads}: max |C - P^T A P| / max |P^T A P| = {err:.1e}")

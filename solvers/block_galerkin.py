@@ -55,8 +55,8 @@ def block_pattern(pattern: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
     """
     n = pattern.shape[0]
     lengths = np.diff(pattern.indptr)
-    message = ("BlockGalerkin: the fine matrix's rows must hold full, column-sorted 3 x 3 "
-               "blocks (3 dofs per vertex)")
+    message = ("block product: the matrix's rows must hold full, column-sorted 3 x 3 blocks "
+               "(3 dofs per vertex)")
     if n % 3 or pattern.shape[1] % 3 or np.any(lengths % 3) \
             or np.any(lengths[0::3] != lengths[1::3]) or np.any(lengths[0::3] != lengths[2::3]):
         raise InputError(message)

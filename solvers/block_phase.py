@@ -219,7 +219,7 @@ def _ztb_threads(cuts: np.ndarray, n_cols: int, zt_ptr: np.ndarray, zt_idx: np.n
                  zt_pos: np.ndarray, z_ptr: np.ndarray, z_val: np.ndarray, b_ptr: np.ndarray,
                  bb_ptr: np.ndarray, bb_idx: np.ndarray, b_val: np.ndarray, c_ptr: np.ndarray,
                  c_idx: np.ndarray, c_rows: np.ndarray,
-              c_val: np.ndarray) -> None:  # pragma: no cover (compiled)
+                 c_val: np.ndarray) -> None:  # pragma: no cover (compiled)
     """:func:`_ztb_rows` over the coarse block-row ranges ``cuts``, one per thread."""
     for t in numba.prange(cuts.size - 1):
         _ztb_rows(cuts[t], cuts[t + 1], n_cols, zt_ptr, zt_idx, zt_pos, z_ptr, z_val, b_ptr, bb_ptr,

@@ -50,7 +50,7 @@ import scipy.sparse as sp
 from meshes.errors import InputError
 from models.backend import PETSc
 from models.shell.rest import area_weighted_normals
-from solvers.block_phase import BlockPhaseProduct
+from solvers.block_phase import BlockPhaseProduct, TransposeBlockProduct
 from solvers.linear import FactorReport, LinearSolverOptions, SparseDirectSolver
 
 TEST_FIELDS: int = 3
@@ -125,8 +125,10 @@ class CoarseSpace:
 
     Shared by the serial :class:`PhaseSpace` and the distributed
     :class:`solvers.decomposition.split_phase.SplitPhaseSpace`; a subclass builds ``self.z``
-    (PETSc AIJ, serial or distributed) from the entries, sets its values in ``set_fields``
-    and says how a product becomes a scipy matrix (:meth:`_csr`).
+    (PETSc AIJ, serial or distributed) from the entries, sets its values in ``set_fields``,
+    gives the rows of Z it holds (:meth:`_z_rows`), sums a product of its rows over the
+    ranks (:meth:`_ranks_sum`) and says how a PETSc product becomes a scipy matrix
+    (:meth:`_csr`).
 
     Args:
         vertices: Rest positions of the shell ``(n, 3)``.
@@ -152,7 +154,7 @@ class CoarseSpace:
         self.z: Any = None
         self._base: tuple[sp.csr_matrix, float] | None = None
         self._solver: SparseDirectSolver | None = None
-        self._gram: tuple[Any, sp.csr_matrix | None] = (None, None)
+        self._gram: tuple[TransposeBlockProduct | None, sp.csr_matrix | None] = (None, None)
         self._penalty: tuple[Any, Any, Any] | None = None  # (G, G Z, (G Z)^T (G Z))
 
     def _reorder(self, order: np.ndarray) -> None:
@@ -220,14 +222,30 @@ class CoarseSpace:
         """``Z^T A Z`` of the fine Newton matrix (subclass: serial or distributed)."""
         raise NotImplementedError
 
+    def _z_rows(self) -> sp.csr_matrix:
+        """Return the rows of Z held here, a scipy view of :attr:`values` (subclass)."""
+        raise NotImplementedError
+
+    def _ranks_sum(self, key: str, part: sp.csr_matrix) -> sp.csr_matrix:
+        """Return the sum over the ranks of every rank's ``part`` (``key``: which product).
+
+        Serial: ``part`` itself (every row of Z is here).
+        """
+        return part
+
     def _gram_matrix(self) -> sp.csr_matrix:
-        """``Z^T Z`` of the current fields (computed at the first shift-only update)."""
-        mat, csr = self._gram
+        """``Z^T Z`` of the current fields over 3 x 3 blocks, summed over the ranks.
+
+        Computed at the first shift-only update after new fields (pattern fixed at the
+        first: :class:`solvers.block_phase.TransposeBlockProduct`).
+        """
+        product, csr = self._gram
         if csr is None:
-            mat = self.z.transposeMatMult(self.z) if mat is None else \
-                self.z.transposeMatMult(self.z, result=mat)
-            csr = self._csr(mat)
-            self._gram = (mat, csr)
+            if product is None:
+                z = self._z_rows()
+                product = TransposeBlockProduct(z, z)
+            csr = self._ranks_sum("gram", product.product(self.values, self.values))
+            self._gram = (product, csr)
         return csr
 
     def _penalty_part(self, g: Any) -> sp.csr_matrix:
@@ -281,13 +299,16 @@ class PhaseSpace(CoarseSpace):
         self._field_values(x, target)
         self.z.stateIncrease()
 
+    def _z_rows(self) -> sp.csr_matrix:
+        """Return Z as a scipy view of the arrays PETSc reads."""
+        indptr, columns, values = self.csr
+        return sp.csr_matrix((values, columns, indptr), shape=self.z.getSize(), copy=False)
+
     def _galerkin_matrix(self, fine: sp.csr_matrix) -> sp.csr_matrix:
         """``Z^T A Z`` over 3 x 3 blocks from the scipy view of A (patterns fixed at the first)."""
-        indptr, columns, values = self.csr
         if self._block_product is None:
-            z = sp.csr_matrix((values, columns, indptr), shape=self.z.getSize(), copy=False)
-            self._block_product = BlockPhaseProduct(fine, z, self.threads)
-        return self._block_product.product(fine.data, values)
+            self._block_product = BlockPhaseProduct(fine, self._z_rows(), self.threads)
+        return self._block_product.product(fine.data, self.values)
 
     def _penalty_part(self, g: Any) -> sp.csr_matrix:
         """``(G Z)^T (G Z)`` of the scipy G (copied to PETSc once per new object)."""

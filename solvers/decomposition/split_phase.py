@@ -44,17 +44,6 @@ def _gathered(mat: Any, comm: Any) -> sp.csr_matrix:
                           np.concatenate([[0], np.cumsum(counts)])), shape=mat.getSize())
 
 
-def _summed(part: sp.csr_matrix, comm: Any) -> sp.csr_matrix:
-    """Return the sum over the ranks of every rank's ``part`` (same shape), on every rank."""
-    coo = part.tocoo()
-    parts = comm.allgather((coo.row, coo.col, coo.data))
-    total = sp.csr_matrix((np.concatenate([q[2] for q in parts]),
-                           (np.concatenate([q[0] for q in parts]),
-                            np.concatenate([q[1] for q in parts]))), shape=part.shape)
-    total.sum_duplicates()
-    return total
-
-
 class FixedSum:
     """The sum over the ranks of every rank's matrix of a fixed pattern, on every rank.
 
@@ -131,7 +120,7 @@ class SplitPhaseSpace(CoarseSpace):
         self._own = (indptr, hat_dof[self.column].astype(PETSc.IntType), hat_sizes[1])
         self._az: Any = None
         self._transpose: TransposeBlockProduct | None = None
-        self._sum: FixedSum | None = None
+        self._sums: dict[str, FixedSum] = {}
         self._shared = SharedAIJ(comm, fine_sizes[0], fine_sizes[1], indptr, self._own[1],
                                  columns=hat_sizes)
         z = self.z = self._shared.mat
@@ -148,7 +137,7 @@ class SplitPhaseSpace(CoarseSpace):
         """Gather a distributed product of Z to every rank as one scipy matrix."""
         return _gathered(mat, self.comm)
 
-    def _own_rows(self) -> sp.csr_matrix:
+    def _z_rows(self) -> sp.csr_matrix:
         """Return the rank's rows of Z: a scipy view of the values PETSc reads, PETSc columns."""
         indptr, cols, n_cols = self._own
         return sp.csr_matrix((self.values, cols, indptr), shape=(indptr.size - 1, n_cols),
@@ -159,7 +148,7 @@ class SplitPhaseSpace(CoarseSpace):
 
         Every rank multiplies its own rows of Z and of ``A Z`` over 3 x 3 blocks
         (:class:`solvers.block_phase.TransposeBlockProduct`) and the parts are summed over the
-        ranks on a pattern fixed at the first product (:class:`FixedSum`): no PETSc transpose
+        ranks on a pattern fixed at the first product (:meth:`_ranks_sum`): no PETSc transpose
         product, whose transposed Z and merged rows would stay allocated between iterations.
         """
         if self._az is None:
@@ -169,24 +158,14 @@ class SplitPhaseSpace(CoarseSpace):
         indptr, cols, data = self._az.getValuesCSR()
         if self._transpose is None:
             az = sp.csr_matrix((data, cols, indptr), shape=(indptr.size - 1, self._own[2]))
-            self._transpose = TransposeBlockProduct(self._own_rows(), az)
-        part = self._transpose.product(self.values, data)
-        if self._sum is None:
-            self._sum = FixedSum(part, self.comm)
-        return self._sum(part.data)
+            self._transpose = TransposeBlockProduct(self._z_rows(), az)
+        return self._ranks_sum("galerkin", self._transpose.product(self.values, data))
 
-    def _gram_matrix(self) -> sp.csr_matrix:
-        """``Z^T Z``: every rank's ``Z_r^T Z_r`` of its own rows (scipy), summed over the ranks.
-
-        No PETSc product: its transposes and merged local rows would stay allocated for a
-        matrix needed only by the shift-only updates.
-        """
-        mat, csr = self._gram
-        if csr is None:
-            own = self._own_rows()
-            csr = _summed(sp.csr_matrix(own.T @ own), self.comm)
-            self._gram = (mat, csr)
-        return csr
+    def _ranks_sum(self, key: str, part: sp.csr_matrix) -> sp.csr_matrix:
+        """Sum every rank's ``part`` of the product ``key`` (collective; :class:`FixedSum`)."""
+        if key not in self._sums:
+            self._sums[key] = FixedSum(part, self.comm)
+        return self._sums[key](part.data)
 
     def _column_sums(self, sums: np.ndarray) -> np.ndarray:
         """Add every rank's column sums (each rank holds the entries of its own rows)."""

@@ -614,7 +614,7 @@ class SparseDirectSolver:
         self.options = options or LinearSolverOptions()
         self.pattern = _check_pattern_csr(pattern, "SparseDirectSolver.pattern")
         self.n = self.pattern.shape[0]
-        self.diagonal_positions = _diagonal_positions(self.pattern)
+        self.diagonal_positions = diagonal_positions(self.pattern)
         make = _ScipyBackend if self.options.backend == "scipy" else _PetscBackend
         self._backend: _Backend = make(self.pattern, self.options, expected_negative)
         self.stats = SolverStats()
@@ -736,8 +736,41 @@ def factorize_with_shift(factorize: Callable[[float], FactorReport], diagonal_sc
     return reports
 
 
-def _diagonal_positions(pattern: sp.csr_matrix) -> np.ndarray | None:
-    """Position of each diagonal entry in ``pattern.data``, or None if one is missing."""
+class DiagonalScale:
+    """Mean ``|A_ii|`` of matrices that share one CSR pattern (the shift ladder's scale).
+
+    The diagonal's positions in the values are found once per pattern (the same
+    ``indptr``/``indices`` objects: the shell assembly's Hessians share them) instead of a
+    search of every row per call; a pattern without the full diagonal uses scipy's
+    ``diagonal()`` (missing entries are zeros).
+    """
+
+    def __init__(self) -> None:
+        self._pattern: tuple[np.ndarray, np.ndarray] | None = None
+        self._positions: np.ndarray | None = None
+
+    def __call__(self, matrix: Any) -> float:
+        """Return ``mean |diag(matrix)|``, or 1 when that is 0 (NaN stays NaN).
+
+        ``matrix``: scipy sparse, or any object with ``diagonal()`` (a rank's owned rows).
+        """
+        if not sp.issparse(matrix):
+            return float(np.mean(np.abs(matrix.diagonal()))) or 1.0
+        csr = matrix if sp.isspmatrix_csr(matrix) else sp.csr_matrix(matrix)
+        if self._pattern is None or csr.indptr is not self._pattern[0] \
+                or csr.indices is not self._pattern[1]:
+            self._pattern = (csr.indptr, csr.indices)
+            self._positions = diagonal_positions(csr)
+        diagonal = csr.data[self._positions] if self._positions is not None \
+            else csr.diagonal()
+        return float(np.mean(np.abs(diagonal))) or 1.0
+
+
+def diagonal_positions(pattern: sp.csr_matrix) -> np.ndarray | None:
+    """Position of each diagonal entry ``(i, i)`` in ``pattern.data``, or None if one is missing.
+
+    Row i of a rectangular pattern (a rank's leading rows) has its diagonal at column i.
+    """
     n = pattern.shape[0]
     rows = np.repeat(np.arange(n), np.diff(pattern.indptr))
     pos = np.flatnonzero(rows == pattern.indices)
@@ -828,7 +861,7 @@ class AugmentedPenaltySolver:
         self.solver = SparseDirectSolver(self.layout.pattern, opts, expected_negative=self.m)
         self._k = self.layout.pattern.copy()
         self._k.data[self.layout.to_identity] = -1.0
-        self.a_diagonal = _diagonal_positions(self.a_pattern)
+        self.a_diagonal = diagonal_positions(self.a_pattern)
 
     def assemble(self, a: sp.spmatrix, g: sp.spmatrix, shift: float = 0.0) -> sp.csr_matrix:
         """Fill and return K for values ``a``, ``g`` (``shift`` added on A's diagonal)."""

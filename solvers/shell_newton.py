@@ -51,6 +51,7 @@ from models.shell.rest import face_quality
 from solvers.inertia_shift import restart_ladder
 from solvers.linear import (
     AugmentedPenaltySolver,
+    DiagonalScale,
     FactorReport,
     LinearSolverOptions,
     ShiftOptions,
@@ -549,6 +550,7 @@ class ShellNewtonSolver:
         self._refresh = True  # the next iteration must factorise (modified Newton)
         self._mode_now = ""
         self._target = 0.0  # gradient tolerance of the running solve (multigrid forcing)
+        self._diagonal_scale = DiagonalScale()
 
     @property
     def shift_state(self) -> np.ndarray:
@@ -712,7 +714,7 @@ class ShellNewtonSolver:
         iteration per ``shift_decay`` of the return).
         """
         assert ev.hess is not None  # order-2 evaluation
-        scale = float(np.mean(np.abs(ev.hess.diagonal()))) or 1.0
+        scale = self._diagonal_scale(ev.hess)
         taus: list[float] = []
         found: list[_Direction] = []
 

@@ -19,6 +19,7 @@ from models.shell.topology import ShellTopology
 from solvers.linear import (
     MUMPS_ORDERINGS,
     AugmentedPenaltySolver,
+    DiagonalScale,
     LinearSolverOptions,
     ShiftOptions,
     SparseDirectSolver,
@@ -387,3 +388,22 @@ def test_out_of_core_factor(sphere_10k: tuple[sp.csr_matrix, np.ndarray]) -> Non
         memory[ooc] = report.memory_mb
         solver.destroy()
     assert memory[True] < 0.5 * memory[False]
+
+
+def test_diagonal_scale_matches_scipy_and_follows_new_patterns() -> None:
+    """Cached positions give ``mean |diag|`` of each matrix; a new pattern is searched again."""
+    rng = np.random.default_rng(3)
+    scale = DiagonalScale()
+    first = sp.random(40, 40, density=0.2, random_state=rng, format="csr") + sp.eye(40) * -3.0
+    first = sp.csr_matrix(first)
+    first.sort_indices()
+    assert scale(first) == pytest.approx(np.mean(np.abs(first.diagonal())), rel=1e-15)
+    again = sp.csr_matrix(first.shape)  # the same pattern arrays, new values (as assembled)
+    again.data, again.indices, again.indptr = (rng.standard_normal(first.nnz), first.indices,
+                                               first.indptr)
+    assert scale(again) == pytest.approx(np.mean(np.abs(again.diagonal())), rel=1e-15)
+    holed = sp.csr_matrix(sp.diags(np.r_[0.0, 2.0, 4.0]))  # a zero diagonal entry not stored
+    holed.eliminate_zeros()
+    assert scale(holed) == pytest.approx(2.0)
+    assert scale(sp.csr_matrix((3, 3))) == 1.0
+    assert np.isnan(scale(sp.csr_matrix(np.diag([np.nan, 1.0]))))

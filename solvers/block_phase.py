@@ -93,50 +93,58 @@ class TransposeBlockProduct:
 
 
 class BlockPhaseProduct:
-    """``Z^T A Z`` over 3 x 3 blocks for fixed patterns of A and Z (module docstring).
+    """``Z_1^T A Z`` over 3 x 3 blocks for fixed patterns of A and Z (module docstring).
+
+    A's rows are the leading rows of Z's (``Z_1``): serially all of them (``Z^T A Z``); on a
+    rank of a split shell its own vertices' rows of the Newton matrix over its own and halo
+    vertices' columns, so that the rank's share ``Z_r^T (A Z)_r`` needs no product with
+    other ranks' rows (the shares are summed over the ranks by the caller).
 
     Args:
-        a_pattern: Scalar CSR pattern of A (square, full 3 x 3 blocks).
-        z_pattern: Scalar CSR pattern of Z (3 n x 3 n_c, full 3 x 3 blocks).
+        a_pattern: Scalar CSR pattern of A (``3 m x 3 n``, full 3 x 3 blocks, ``m <= n``).
+        z_pattern: Scalar CSR pattern of Z (``3 n x 3 n_c``, full 3 x 3 blocks).
         threads: Threads of each pass (numba ``prange`` over block-row ranges).
 
     Attributes:
-        pattern: Scalar CSR pattern of ``Z^T A Z`` (full 3 x 3 blocks).
+        pattern: Scalar CSR pattern of ``Z_1^T A Z`` (full 3 x 3 blocks).
 
     """
 
     def __init__(self, a_pattern: sp.csr_matrix, z_pattern: sp.csr_matrix,
                  threads: int = 1) -> None:
-        if a_pattern.shape[0] != a_pattern.shape[1] or a_pattern.shape[0] != z_pattern.shape[0]:
+        if a_pattern.shape[1] != z_pattern.shape[0] or a_pattern.shape[0] > a_pattern.shape[1]:
             raise InputError(f"BlockPhaseProduct: A of shape {a_pattern.shape} and Z of "
-                             f"shape {z_pattern.shape} do not make Z^T A Z")
+                             f"shape {z_pattern.shape} do not make Z_1^T A Z")
         ab_ptr, ab_idx = block_pattern(a_pattern)
         zb_ptr, zb_idx = block_pattern(z_pattern)
-        n, n_c = ab_ptr.size - 1, z_pattern.shape[1] // 3
-        a_blocks = sp.csr_matrix((np.ones(ab_idx.size), ab_idx, ab_ptr), shape=(n, n))
+        m, n, n_c = ab_ptr.size - 1, zb_ptr.size - 1, z_pattern.shape[1] // 3
+        a_blocks = sp.csr_matrix((np.ones(ab_idx.size), ab_idx, ab_ptr), shape=(m, n))
         z_blocks = sp.csr_matrix((np.ones(zb_idx.size), zb_idx, zb_ptr), shape=(n, n_c))
         az = sp.csr_matrix(a_blocks @ z_blocks)
         az.sort_indices()
         az_rows, az_cols = full_blocks(az.indptr, az.indices)
         self._a = (np.asarray(a_pattern.indptr, dtype=np.int64), ab_ptr, ab_idx)
         self._z = (np.asarray(z_pattern.indptr, dtype=np.int64), zb_ptr, zb_idx)
+        self._lead = int(z_pattern.indptr[3 * m])  # Z_1's values: the leading ones of Z's
+        z_lead = sp.csr_matrix((np.zeros(self._lead), z_pattern.indices[:self._lead],
+                                z_pattern.indptr[:3 * m + 1]), shape=(3 * m, z_pattern.shape[1]))
         self._az = (az.indptr.astype(np.int64), az.indices.astype(np.int64), az_rows,
                     np.zeros(az_cols.size))
         self._transpose = TransposeBlockProduct(
-            z_pattern, sp.csr_matrix((self._az[3], az_cols, az_rows), shape=(3 * n, 3 * n_c)),
+            z_lead, sp.csr_matrix((self._az[3], az_cols, az_rows), shape=(3 * m, 3 * n_c)),
             threads)
         self.pattern = self._transpose.pattern
         self._cuts = balanced_cuts(self._az[0], threads)
 
     def product(self, a_values: np.ndarray, z_values: np.ndarray) -> sp.csr_matrix:
-        """Return ``Z^T A Z`` (a new scipy CSR) from A's and Z's values in their CSR orders."""
+        """Return ``Z_1^T A Z`` (a new scipy CSR) from A's and Z's values in their CSR orders."""
         if a_values.size != self._a[0][-1] or z_values.size != self._z[0][-1]:
             raise InputError(f"BlockPhaseProduct.product: expected {self._a[0][-1]} values of "
                              f"A and {self._z[0][-1]} of Z, got {a_values.size} and "
                              f"{z_values.size}")
         in_ranges(_az_rows, _az_threads, self._cuts, self.pattern.shape[0] // 3, *self._a,
                   a_values, *self._z, z_values, *self._az)
-        return self._transpose.product(z_values, self._az[3])
+        return self._transpose.product(z_values[:self._lead], self._az[3])
 
 
 @numba.njit(cache=True, nogil=True)

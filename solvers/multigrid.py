@@ -874,7 +874,7 @@ class MultigridLinearSystem(KrylovBase):
         self._set_penalty(ev.penalty_factor)
         same_matrix = self._current is not None and self._current[0] is ev
         self._current = (ev, tau)
-        phase = self._update_phase(ev.penalty_factor, tau, same_matrix)
+        phase = self._update_phase(hess, ev.penalty_factor, tau, same_matrix)
         if phase is not None and phase.indefinite:
             self.stats.indefinite_skips += 1
         self._galerkin_products()
@@ -888,24 +888,24 @@ class MultigridLinearSystem(KrylovBase):
             self._deflated = self._deflated_ksp()
         return self._setup_done(start, FactorReport(success=True, shift=float(tau)))
 
-    def _update_phase(self, g: sp.csr_matrix | None, tau: float, same_matrix: bool
-                      ) -> FactorReport | None:
+    def _update_phase(self, hess: sp.csr_matrix, g: sp.csr_matrix | None, tau: float,
+                      same_matrix: bool) -> FactorReport | None:
         """Phase space: new test fields, Galerkin matrix and its factorisation (None: off).
 
-        ``same_matrix``: the evaluation of the last set-up with another shift; with the same
-        state (:meth:`set_state`) the Galerkin matrix is shifted instead of recomputed.
+        ``hess``: the Newton matrix without the shift ``tau``. ``same_matrix``: the
+        evaluation of the last set-up with another shift; with the same state
+        (:meth:`set_state`) the Galerkin matrix is shifted instead of recomputed.
         ``_phase_ready`` says whether CG uses the correction (its matrix factorised and SPD).
         """
         self._phase_ready = False
         if self.phase is None:
             return None
-        assert self._fine is not None  # set by factorize (internal invariant)
         shift_only = same_matrix and not self._fields_stale
         if not shift_only:
             x, y = self._state if self._state is not None else (self.phase.rest,) * 2
             self.phase.set_fields(x, y)
             self._fields_stale = False
-        report = self.phase.update(self._fine.csr(), g, tau, shift_only=shift_only)
+        report = self.phase.update(hess, g, tau, shift_only=shift_only)
         self._phase_ready = report.usable_spd
         return report
 

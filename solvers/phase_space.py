@@ -126,42 +126,54 @@ class CoarseSpace:
     Shared by the serial :class:`PhaseSpace` and the distributed
     :class:`solvers.decomposition.split_phase.SplitPhaseSpace`; a subclass builds ``self.z``
     (PETSc AIJ, serial or distributed) from the entries, sets its values in ``set_fields``,
-    gives the rows of Z it holds (:meth:`_z_rows`), sums a product of its rows over the
-    ranks (:meth:`_ranks_sum`) and says how a PETSc product becomes a scipy matrix
-    (:meth:`_csr`).
+    gives the rows of Z it holds (:meth:`_z_held`: a rank's own and halo vertices) and owns
+    (:meth:`_z_rows`), sums a product of its rows over the ranks (:meth:`_ranks_sum`) and
+    says how a PETSc product becomes a scipy matrix (:meth:`_csr`).
 
     Args:
         vertices: Rest positions of the shell ``(n, 3)``.
         faces: Shell triangles.
         hats: Vertex hats ``(n, n_c)`` (:func:`hat_matrix`).
+        threads: Threads of the block products.
 
     """
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, hats: sp.csr_matrix) -> None:
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, hats: sp.csr_matrix,
+                 threads: int = 1) -> None:
+        self.threads = threads
         self.gradients = surface_gradients(vertices, faces)
         self.rest = np.asarray(vertices, dtype=np.float64)
         self.frames = hat_frames(vertices, faces, hats)                # (n_c, 2, 3)
         coo = hats.tocoo()
         # entry e of Z: dof 3 v + c, column TEST_FIELDS j + m, value hat(v, j) t_m[v, c]
-        self.vertex = np.repeat(coo.row, 3 * TEST_FIELDS)
-        self.hat = np.repeat(coo.col, 3 * TEST_FIELDS)
+        index = np.int32 if max(hats.shape) < np.iinfo(np.int32).max // 4 else np.int64
+        self.vertex = np.repeat(coo.row.astype(index), 3 * TEST_FIELDS)
+        self.hat = np.repeat(coo.col.astype(index), 3 * TEST_FIELDS)
         self.component = np.tile(np.repeat(np.arange(3, dtype=np.int8), TEST_FIELDS), coo.nnz)
         self.field = np.tile(np.arange(TEST_FIELDS, dtype=np.int8), 3 * coo.nnz)
         self.hat_value = np.repeat(coo.data, 3 * TEST_FIELDS)
-        self.column = TEST_FIELDS * self.hat + self.field
+        self.column = (TEST_FIELDS * self.hat + self.field).astype(index)
         self.n_columns = TEST_FIELDS * hats.shape[1]
         self.values = np.zeros(self.vertex.size, dtype=PETSc.ScalarType)
+        self.counted = self.values.size
+        """Leading entries of :attr:`values` counted in the column norms (a rank's own rows)."""
         self.z: Any = None
         self._base: tuple[sp.csr_matrix, float] | None = None
         self._solver: SparseDirectSolver | None = None
         self._gram: tuple[TransposeBlockProduct | None, sp.csr_matrix | None] = (None, None)
         self._penalty: tuple[Any, Any, Any] | None = None  # (G, G Z, (G Z)^T (G Z))
+        self._block_product: BlockPhaseProduct | None = None
 
-    def _reorder(self, order: np.ndarray) -> None:
-        """Permute or select the entries (Z's CSR order; a rank's own rows)."""
+    def _reorder(self, order: np.ndarray, counted: int | None = None) -> None:
+        """Permute or select the entries (Z's CSR order; a rank's own and halo rows).
+
+        ``counted``: the leading entries whose squares make the column norms (the rows this
+        rank owns; None: all).
+        """
         for name in ("vertex", "hat", "component", "field", "hat_value", "column"):
             setattr(self, name, getattr(self, name)[order])
         self.values = np.zeros(order.size, dtype=PETSc.ScalarType)
+        self.counted = order.size if counted is None else counted
 
     def _field_values(self, x: np.ndarray, target: np.ndarray) -> None:
         """Every entry's value from x and the target y (``(n, 3)``), columns normalised.
@@ -172,22 +184,25 @@ class CoarseSpace:
         grads = np.stack([g @ d for g in self.gradients], axis=-1)      # (n, 3 comp, 3 dir)
         z_values(self.values, self.hat_value, self.vertex, self.component, self.field,
                  self.hat, self.frames, d, grads)
-        norms = self._column_sums(np.bincount(self.column, self.values ** 2, self.n_columns))
+        own = slice(0, self.counted)
+        norms = self._column_sums(np.bincount(self.column[own], self.values[own] ** 2,
+                                              self.n_columns))
         scale = np.where(norms > 0, 1.0 / np.sqrt(np.where(norms > 0, norms, 1.0)), 0.0)
         self.values *= scale[self.column]
         self._base, self._gram = None, (self._gram[0], None)
 
-    def update(self, fine: Any, g: Any, tau: float = 0.0,
+    def update(self, fine: sp.csr_matrix, g: Any, tau: float = 0.0,
                shift_only: bool = False) -> FactorReport:
-        """Factorise ``Z^T (A + tau I + G^T G) Z`` of the fine AIJ ``A + tau I``.
+        """Factorise ``Z^T (A + tau I + G^T G) Z``.
 
         Args:
-            fine: The fine Newton matrix, shift included: a scipy CSR view of its values
-                (:class:`PhaseSpace`) or the distributed PETSc AIJ (the split space).
+            fine: The rows of the Newton matrix A held here, without the shift: serially all
+                of A, on a rank its own vertices' rows over its own and halo vertices'
+                columns (scipy CSR of full 3 x 3 blocks, the same pattern at every call).
             g: The penalty factor G (scipy, or the distributed PETSc factor).
-            tau: The shift in ``fine``.
-            shift_only: ``fine`` differs from the one of the last full update (same fields)
-                by its shift alone: ``Z^T A Z + (tau - tau_last) Z^T Z`` is factorised
+            tau: The diagonal shift, added as ``tau Z^T Z``.
+            shift_only: ``fine`` is the matrix of the last full update (same fields), only
+                the shift differs: ``Z^T A Z + (tau - tau_last) Z^T Z`` is factorised
                 without the fine product (the shell Newton's retries with larger shifts).
 
         Returns:
@@ -200,6 +215,8 @@ class CoarseSpace:
             total = (base + (tau - base_tau) * self._gram_matrix()).tocsr()
         else:
             total = self._galerkin_matrix(fine)
+            if tau:
+                total = total + tau * self._gram_matrix()
             if g is not None:
                 total = total + self._penalty_part(g)
             self._base = (total, tau)
@@ -218,12 +235,22 @@ class CoarseSpace:
         """Column sums of the entries held here, over all of Z (serial: all are here)."""
         return sums
 
-    def _galerkin_matrix(self, fine: Any) -> sp.csr_matrix:
-        """``Z^T A Z`` of the fine Newton matrix (subclass: serial or distributed)."""
+    def _galerkin_matrix(self, fine: sp.csr_matrix) -> sp.csr_matrix:
+        """``Z^T A Z`` over 3 x 3 blocks, every rank's ``Z_r^T (A Z)_r`` summed over the ranks.
+
+        :class:`solvers.block_phase.BlockPhaseProduct` of the rows held here (patterns fixed
+        at the first product), then :meth:`_ranks_sum`.
+        """
+        if self._block_product is None:
+            self._block_product = BlockPhaseProduct(fine, self._z_held(), self.threads)
+        return self._ranks_sum("galerkin", self._block_product.product(fine.data, self.values))
+
+    def _z_held(self) -> sp.csr_matrix:
+        """Return every row of Z held here, a scipy view of :attr:`values` (subclass)."""
         raise NotImplementedError
 
     def _z_rows(self) -> sp.csr_matrix:
-        """Return the rows of Z held here, a scipy view of :attr:`values` (subclass)."""
+        """Return the rows of Z this rank owns, a view of :attr:`values`' leading entries."""
         raise NotImplementedError
 
     def _ranks_sum(self, key: str, part: sp.csr_matrix) -> sp.csr_matrix:
@@ -236,15 +263,16 @@ class CoarseSpace:
     def _gram_matrix(self) -> sp.csr_matrix:
         """``Z^T Z`` of the current fields over 3 x 3 blocks, summed over the ranks.
 
-        Computed at the first shift-only update after new fields (pattern fixed at the
-        first: :class:`solvers.block_phase.TransposeBlockProduct`).
+        Computed at the first shifted update after new fields (pattern fixed at the first:
+        :class:`solvers.block_phase.TransposeBlockProduct` of the own rows).
         """
         product, csr = self._gram
         if csr is None:
+            own = self.values[:self.counted]
             if product is None:
                 z = self._z_rows()
                 product = TransposeBlockProduct(z, z)
-            csr = self._ranks_sum("gram", product.product(self.values, self.values))
+            csr = self._ranks_sum("gram", product.product(own, own))
             self._gram = (product, csr)
         return csr
 
@@ -276,9 +304,7 @@ class PhaseSpace(CoarseSpace):
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, hats: sp.csr_matrix,
                  threads: int = 1) -> None:
-        super().__init__(vertices, faces, hats)
-        self.threads = threads
-        self._block_product: BlockPhaseProduct | None = None
+        super().__init__(vertices, faces, hats, threads)
         rows = 3 * self.vertex + self.component
         order = np.lexsort((self.column, rows))
         self._reorder(order)
@@ -299,16 +325,14 @@ class PhaseSpace(CoarseSpace):
         self._field_values(x, target)
         self.z.stateIncrease()
 
-    def _z_rows(self) -> sp.csr_matrix:
+    def _z_held(self) -> sp.csr_matrix:
         """Return Z as a scipy view of the arrays PETSc reads."""
         indptr, columns, values = self.csr
         return sp.csr_matrix((values, columns, indptr), shape=self.z.getSize(), copy=False)
 
-    def _galerkin_matrix(self, fine: sp.csr_matrix) -> sp.csr_matrix:
-        """``Z^T A Z`` over 3 x 3 blocks from the scipy view of A (patterns fixed at the first)."""
-        if self._block_product is None:
-            self._block_product = BlockPhaseProduct(fine, self._z_rows(), self.threads)
-        return self._block_product.product(fine.data, self.values)
+    def _z_rows(self) -> sp.csr_matrix:
+        """Return Z (every row is owned here)."""
+        return self._z_held()
 
     def _penalty_part(self, g: Any) -> sp.csr_matrix:
         """``(G Z)^T (G Z)`` of the scipy G (copied to PETSc once per new object)."""

@@ -205,8 +205,9 @@ class SplitMultigridSystem(KrylovBase):
         hats = hat_matrix(tuple(sp.csr_matrix(p[::3, ::3]) for p in prolongations), level)
         fine, columns = self.levels[-1], self.levels[level]
         return SplitPhaseSpace(*geometry, hats,
-                               (fine.dof, fine.owned, (fine.local_size, fine.size)),
-                               (columns.dof, (columns.local_size, columns.size)), self.comm)
+                               (self.energy.patch.local, (fine.local_size, fine.size)),
+                               (columns.dof, (columns.local_size, columns.size)), self.comm,
+                               self.options.threads)
 
     def _prolongation(self, p: sp.csr_matrix, fine: LevelNumbering,
                       coarse: LevelNumbering) -> Any:
@@ -264,7 +265,7 @@ class SplitMultigridSystem(KrylovBase):
         self._fine_products.set_values(rows.data, tau)
         same_matrix = self._current is not None and self._current[0] is ev
         self._current = (ev, float(tau))
-        phase = self._update_phase(tau, same_matrix)
+        phase = self._update_phase(rows, tau, same_matrix)
         if phase is not None and phase.indefinite:
             self.stats.indefinite_skips += 1
         self._galerkin = galerkin_levels(self._fine.mat, self.p_mats, self._galerkin)
@@ -281,11 +282,13 @@ class SplitMultigridSystem(KrylovBase):
             self._deflated = self._deflated_ksp()
         return self._setup_done(start, FactorReport(success=True, shift=float(tau)))
 
-    def _update_phase(self, tau: float, same_matrix: bool) -> FactorReport | None:
+    def _update_phase(self, rows: sp.csr_matrix, tau: float,
+                      same_matrix: bool) -> FactorReport | None:
         """Phase space: new test fields, ``A_Z`` and its factorisation (None: off).
 
         As :meth:`solvers.multigrid.MultigridLinearSystem._update_phase`: a retry of the same
-        evaluation with another shift and unchanged fields only shifts ``A_Z``.
+        evaluation with another shift and unchanged fields only shifts ``A_Z``. ``rows``:
+        this rank's rows of the Newton matrix (local columns), without the shift ``tau``.
         """
         self._phase_ready = False
         if self.phase is None:
@@ -296,7 +299,7 @@ class SplitMultigridSystem(KrylovBase):
             self.phase.set_fields(x, y)
             self._fields_stale = False
         penalty = self._penalty[-1]
-        report = self.phase.update(self._fine.mat, None if penalty is None else penalty[0], tau,
+        report = self.phase.update(rows, None if penalty is None else penalty[0], tau,
                                    shift_only=shift_only)
         self._phase_ready = report.usable_spd
         return report

@@ -11,13 +11,16 @@ used by the deflation preconditioner A-DEF2 (Tang, Nabben, Vuik & Erlangga, J. S
 
 * Z is a ``MATMPIAIJ`` whose rows are the fine dofs of each rank (PETSc numbering of
   :class:`~.split_multigrid.LevelNumbering`) and whose columns are numbered by the owner of
-  each hat (3 per hat); each rank computes the entries of its own rows (from the full x)
-  into the arrays PETSc reads (:class:`~solvers.shared_aij.SharedAIJ`), the column norms
-  summed over the ranks;
-* ``A Z`` and ``(G Z)^T (G Z)`` are parallel products (symbolic parts reused), ``Z^T (A Z)``
-  the sum of every rank's product of its own rows (3 x 3 blocks); ``A_Z``
-  is small (3 columns per coarse hat) and is gathered to every rank and factorised there by
-  the serial LDL^T, whose inertia says whether A is indefinite (as in the serial space);
+  each hat (3 per hat); each rank computes the entries of its own and its halo vertices'
+  rows (from the full x), the column norms summed over the own rows of all ranks, and
+  gives its own rows to PETSc (:class:`~solvers.shared_aij.SharedAIJ`);
+* ``Z^T A Z`` is the sum of every rank's ``Z_r^T (A_r Z)``: A_r, the rank's rows of the
+  Newton matrix, reaches only its own and halo vertices, so both factors are local
+  (:class:`~solvers.block_phase.BlockPhaseProduct` over 3 x 3 blocks), and the parts are
+  summed on a fixed pattern by one ``MPI_Allreduce``; ``Z^T Z`` likewise; ``(G Z)^T (G Z)``
+  is a parallel PETSc product (symbolic part reused). ``A_Z`` is small (3 columns per
+  coarse hat) and is factorised on every rank by the serial LDL^T, whose inertia says
+  whether A is indefinite (as in the serial space);
 * ``Q r``: ``Z^T r`` gathered to every rank, the small solve, ``Z`` times the owned part.
 """
 
@@ -29,9 +32,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from models.backend import MPI, PETSc
-from solvers.block_phase import TransposeBlockProduct
 from solvers.phase_space import CoarseSpace
-from solvers.shared_aij import SharedAIJ, range_start
+from solvers.shared_aij import SharedAIJ
 
 
 def _gathered(mat: Any, comm: Any) -> sp.csr_matrix:
@@ -93,36 +95,38 @@ class SplitPhaseSpace(CoarseSpace):
         vertices: Rest positions of the shell ``(n, 3)`` (the same on every rank).
         faces: Shell triangles.
         hats: Vertex hats ``(n, n_c)`` (:func:`solvers.phase_space.hat_matrix`).
-        fine: ``(dof, owned, sizes)`` of the fine level: (3n,) PETSc index of every dof,
-            (3 n_r,) this rank's dofs in row order, (local, global) rows.
+        fine: ``(local, sizes)`` of the fine level: the vertices of this rank's Hessian
+            columns in their local order, its own ones first in the order of its rows, and
+            its (local, global) rows.
         columns: ``(dof, sizes)``: (3 n_c,) PETSc index of every column ``3 j + m`` and
             (local, global) columns.
         comm: Communicator.
+        threads: Threads of the block products.
 
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, hats: sp.csr_matrix,
-                 fine: tuple[np.ndarray, np.ndarray, tuple[int, int]],
-                 columns: tuple[np.ndarray, tuple[int, int]], comm: Any) -> None:
-        super().__init__(vertices, faces, hats)
-        fine_dof, fine_owned, fine_sizes = fine
+                 fine: tuple[np.ndarray, tuple[int, int]],
+                 columns: tuple[np.ndarray, tuple[int, int]], comm: Any,
+                 threads: int = 1) -> None:
+        super().__init__(vertices, faces, hats, threads)
+        local, fine_sizes = fine
         hat_dof, hat_sizes = columns
         self.comm = comm
-        owned = np.zeros(fine_dof.size, dtype=bool)
-        owned[fine_owned] = True
-        mine = np.flatnonzero(owned[3 * self.vertex + self.component])
-        rows = fine_dof[3 * self.vertex[mine] + self.component[mine]]
+        position = np.full(np.asarray(vertices).shape[0], -1, dtype=np.int64)
+        position[local] = np.arange(local.size)
+        held = np.flatnonzero(position[self.vertex] >= 0)
+        rows = 3 * position[self.vertex[held]] + self.component[held]
         order = np.argsort(rows, kind="stable")
-        self._reorder(mine[order])  # own rows only, by row
+        rows = rows[order]
+        own_rows = fine_sizes[0]
+        self._reorder(held[order], counted=int(np.searchsorted(rows, own_rows)))
         self.gradients = tuple(_rows_kept(g, np.unique(self.vertex)) for g in self.gradients)
-        start = range_start(comm, fine_sizes[0])
-        indptr = np.searchsorted(rows[order] - start, np.arange(fine_sizes[0] + 1))
-        self._own = (indptr, hat_dof[self.column].astype(PETSc.IntType), hat_sizes[1])
-        self._az: Any = None
-        self._transpose: TransposeBlockProduct | None = None
+        indptr = np.searchsorted(rows, np.arange(3 * local.size + 1))
+        self._held = (indptr, hat_dof[self.column].astype(PETSc.IntType), hat_sizes[1])
         self._sums: dict[str, FixedSum] = {}
-        self._shared = SharedAIJ(comm, fine_sizes[0], fine_sizes[1], indptr, self._own[1],
-                                 columns=hat_sizes)
+        self._shared = SharedAIJ(comm, own_rows, fine_sizes[1], indptr[:own_rows + 1],
+                                 self._held[1][:self.counted], columns=hat_sizes)
         z = self.z = self._shared.mat
         self._rhs, self._solution = z.createVecRight(), z.createVecRight()
         self._scatter, self._full = PETSc.Scatter.toAll(self._rhs)
@@ -131,35 +135,24 @@ class SplitPhaseSpace(CoarseSpace):
     def set_fields(self, x: np.ndarray, target: np.ndarray) -> None:
         """Z's values from the positions x and the penalty target y (both ``(n, 3)``)."""
         self._field_values(x, target)
-        self._shared.set_values(self.values)
+        self._shared.set_values(self.values[:self.counted])
 
     def _csr(self, mat: Any) -> sp.csr_matrix:
         """Gather a distributed product of Z to every rank as one scipy matrix."""
         return _gathered(mat, self.comm)
 
-    def _z_rows(self) -> sp.csr_matrix:
-        """Return the rank's rows of Z: a scipy view of the values PETSc reads, PETSc columns."""
-        indptr, cols, n_cols = self._own
+    def _z_held(self) -> sp.csr_matrix:
+        """Return Z's rows of this rank's own and halo vertices (local rows, PETSc columns)."""
+        indptr, cols, n_cols = self._held
         return sp.csr_matrix((self.values, cols, indptr), shape=(indptr.size - 1, n_cols),
                              copy=False)
 
-    def _galerkin_matrix(self, fine: Any) -> sp.csr_matrix:
-        """``Z^T (A Z)``: ``A Z`` by PETSc (symbolic part reused), then ``Z_r^T (A Z)_r``.
-
-        Every rank multiplies its own rows of Z and of ``A Z`` over 3 x 3 blocks
-        (:class:`solvers.block_phase.TransposeBlockProduct`) and the parts are summed over the
-        ranks on a pattern fixed at the first product (:meth:`_ranks_sum`): no PETSc transpose
-        product, whose transposed Z and merged rows would stay allocated between iterations.
-        """
-        if self._az is None:
-            self._az = fine.matMult(self.z)
-        else:
-            fine.matMult(self.z, result=self._az)
-        indptr, cols, data = self._az.getValuesCSR()
-        if self._transpose is None:
-            az = sp.csr_matrix((data, cols, indptr), shape=(indptr.size - 1, self._own[2]))
-            self._transpose = TransposeBlockProduct(self._z_rows(), az)
-        return self._ranks_sum("galerkin", self._transpose.product(self.values, data))
+    def _z_rows(self) -> sp.csr_matrix:
+        """Return the rank's own rows of Z: a view of :attr:`values`' leading entries."""
+        indptr, cols, n_cols = self._held
+        rows = self._shared.mat.getLocalSize()[0]
+        return sp.csr_matrix((self.values[:self.counted], cols[:self.counted],
+                              indptr[:rows + 1]), shape=(rows, n_cols), copy=False)
 
     def _ranks_sum(self, key: str, part: sp.csr_matrix) -> sp.csr_matrix:
         """Sum every rank's ``part`` of the product ``key`` (collective; :class:`FixedSum`)."""

@@ -89,7 +89,9 @@ def test_correction_is_the_a_orthogonal_projection_after_new_fields() -> None:
         assert gap < 1e-8
     mg.set_state(x0, None)  # an energy without a penalty target: d = x - rest positions
     mg.factorize(ev, 0.5)
-    assert phase._gram[1] is None  # new fields: the full Galerkin product again
+    z = phase._z_held()  # new fields: the shift enters as tau Z^T Z of the new Z
+    assert phase._gram[1] is not None
+    assert abs(phase._gram[1] - z.T @ z).max() < 1e-13 * abs(z.T @ z).max()
     phase.correct(_vec(mg.n, r), q_r)
     phase.correct(_vec(mg.n, mg.apply(q_r.getArray())), qaq_r)
     assert np.linalg.norm(qaq_r.getArray() - q_r.getArray()) < 1e-8 * np.linalg.norm(

@@ -146,7 +146,7 @@ class CoarseSpace:
         self.frames = hat_frames(vertices, faces, hats)                # (n_c, 2, 3)
         coo = hats.tocoo()
         # entry e of Z: dof 3 v + c, column TEST_FIELDS j + m, value hat(v, j) t_m[v, c]
-        index = np.int32 if max(hats.shape) < np.iinfo(np.int32).max // 4 else np.int64
+        index: Any = np.int32 if max(hats.shape) < np.iinfo(np.int32).max // 4 else np.int64
         self.vertex = np.repeat(coo.row.astype(index), 3 * TEST_FIELDS)
         self.hat = np.repeat(coo.col.astype(index), 3 * TEST_FIELDS)
         self.component = np.tile(np.repeat(np.arange(3, dtype=np.int8), TEST_FIELDS), coo.nnz)

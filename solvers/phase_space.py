@@ -23,8 +23,8 @@ there to the shell) times its test fields:
 so ``span Z`` holds every coarse-scale modulation of the amplitude and phase of the wrinkles
 (the per-hat frame keeps two independent derivatives, ``n . grad = 0``). Z's pattern is fixed
 (the hats'); its values follow x every Newton iteration. The coarse matrix
-``A_Z = Z^T (A + tau I + G^T G) Z`` (``Z^T A Z`` over 3 x 3 vertex blocks, by PETSc on ranks,
-plus ``(G Z)^T (G Z)``; a new shift adds ``(tau - tau') Z^T Z``) is factorised by MUMPS LDL^T;
+``A_Z = Z^T (A + tau I + G^T G) Z`` (``Z^T A Z`` over 3 x 3 vertex blocks, on ranks each
+rank's rows summed, plus ``tau Z^T Z`` and ``(G Z)^T (G Z)``) is factorised by MUMPS LDL^T;
 its inertia tells whether it is positive definite (else the multigrid runs alone for that
 matrix: ``Z^T A Z`` indefinite means A is). A zero column (no wrinkles under a hat) is kept
 with a unit diagonal so the pattern never changes.

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 
@@ -79,7 +80,8 @@ class SharedAIJ:
             raise InputError("SharedAIJ: an entry (row, column) is given twice")
         rows: np.ndarray = np.repeat(np.arange(local, dtype=index), np.diff(indptr))
         first = order.indices < local_cols
-        self._take = [order.data[first].astype(index), order.data[~first].astype(index)]
+        self._take = [Gather(order.data[first].astype(index)),
+                      Gather(order.data[~first].astype(index))]
         blocks = []
         for mask, shift in ((first, 0), (~first, local_cols)):
             block_ptr = np.zeros(local + 1, dtype=PETSc.IntType)
@@ -99,7 +101,7 @@ class SharedAIJ:
     @property
     def nnz(self) -> int:
         """Entries on this rank (the length of :meth:`set_values`' input)."""
-        return int(self._take[0].size + self._take[1].size)
+        return self._take[0].size + self._take[1].size
 
     def set_values(self, values: np.ndarray, shift: float = 0.0) -> None:
         """Take the entries' values (in the constructor's order), plus ``shift`` on the diagonal.
@@ -110,8 +112,8 @@ class SharedAIJ:
         if values.shape != (self.nnz,):
             raise InputError(f"SharedAIJ.set_values: expected {self.nnz} values, "
                              f"got shape {values.shape}")
-        for (_, _, data), take in zip(self._blocks, self._take, strict=True):
-            _gather(values, take, data)
+        for (_, _, data), gather in zip(self._blocks, self._take, strict=True):
+            gather(values, data)
         if shift:
             self._blocks[0][2][self.diagonal] += shift
         self.mat.stateIncrease()
@@ -121,10 +123,55 @@ _CHUNK = 1 << 18
 """Entries gathered per ``np.take`` call."""
 
 
-def _gather(values: np.ndarray, take: np.ndarray, out: np.ndarray) -> None:
-    """``out = values[take]`` in chunks (bounded index casts, int32 -> intp)."""
-    for lo in range(0, take.size, _CHUNK):
-        np.take(values, take[lo: lo + _CHUNK], out=out[lo: lo + _CHUNK])
+class Gather:
+    """``out = values[take]`` for a fixed ``take``, kept as runs of consecutive positions.
+
+    A rank's Hessian rows arrive with each row's own columns first and in order, so the
+    diagonal block of a :class:`SharedAIJ` is one run per row; a block-upper copy takes
+    runs of 3 (a vertex's three columns). When runs pay (at most half as many as entries)
+    the run starts are kept, ``(out_start, in_start)`` per run (8 bytes per run in int32,
+    against 4 per entry); otherwise the positions themselves.
+
+    Args:
+        take: (m,) positions in the input of every output entry.
+
+    """
+
+    def __init__(self, take: np.ndarray) -> None:
+        take = np.asarray(take)
+        self.size = int(take.size)
+        index = _index_type(int(take.max(initial=0)) + 1)
+        breaks = np.flatnonzero(np.diff(take) != 1) + 1
+        if 2 * (breaks.size + 1) <= take.size:
+            self.out_starts: np.ndarray | None = np.concatenate(
+                [[0], breaks, [take.size]]).astype(_index_type(take.size + 1))
+            self.in_starts = take[self.out_starts[:-1]].astype(index)
+            self.take: np.ndarray | None = None
+        else:
+            self.out_starts, self.in_starts = None, np.zeros(0, dtype=index)
+            self.take = take.astype(index)
+
+    def __call__(self, values: np.ndarray, out: np.ndarray) -> None:
+        """``out[:] = values[take]``."""
+        if self.take is None:
+            assert self.out_starts is not None  # one of the two forms (internal invariant)
+            _gather_runs(self.out_starts, self.in_starts, values, out)
+            return
+        for lo in range(0, self.size, _CHUNK):
+            np.take(values, self.take[lo: lo + _CHUNK], out=out[lo: lo + _CHUNK])
+
+
+@numba.njit(cache=True)
+def _gather_runs(out_starts: np.ndarray, in_starts: np.ndarray, values: np.ndarray,
+                 out: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """``out[o_r : o_{r+1}] = values[i_r : i_r + o_{r+1} - o_r]`` for every run r."""
+    for r in range(in_starts.size):
+        lo, hi, start = np.int64(out_starts[r]), np.int64(out_starts[r + 1]), np.int64(in_starts[r])
+        if hi - lo > 8:  # a slice copy (vectorised); short runs element by element
+            out[lo:hi] = values[start:start + hi - lo]
+        else:
+            for k in range(hi - lo):
+                out[lo + k] = values[start + k]
 
 
 class BlockUpperCopy:
@@ -164,7 +211,7 @@ class BlockUpperCopy:
         blocks = bsr.data[keep]
         if np.any(blocks == 0):
             raise InputError("BlockUpperCopy: the rows must consist of full 3 x 3 blocks")
-        self._take = (blocks.reshape(-1) - 1).astype(_index_type(len(cols)))
+        self._take = Gather((blocks.reshape(-1) - 1).astype(_index_type(len(cols))))
         self._ptr = np.zeros(local // bs + 1, dtype=PETSc.IntType)
         np.cumsum(np.bincount(block_row[keep], minlength=local // bs), out=self._ptr[1:])
         self._ind = bsr.indices[keep].astype(PETSc.IntType)
@@ -181,11 +228,11 @@ class BlockUpperCopy:
 
         Collective (the matrix is assembled).
         """
-        _gather(values, self._take, self._data)
+        self._take(values, self._data)
         if shift:
             self._data[self._diagonal] += shift
         self.mat.setValuesBlockedCSR(self._ptr, self._ind, self._data)
         self.mat.assemble()
 
 
-__all__ = ["BlockUpperCopy", "SharedAIJ", "range_start"]
+__all__ = ["BlockUpperCopy", "Gather", "SharedAIJ", "range_start"]

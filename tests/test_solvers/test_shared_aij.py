@@ -10,7 +10,7 @@ import scipy.sparse as sp
 
 from meshes.errors import InputError
 from models.backend import MPI, PETSc
-from solvers.shared_aij import BlockUpperCopy, SharedAIJ
+from solvers.shared_aij import BlockUpperCopy, Gather, SharedAIJ
 
 CASE = """
 import json, sys
@@ -151,3 +151,22 @@ def test_refuses_a_repeated_entry_and_wrong_value_counts() -> None:
     shared = SharedAIJ(MPI.COMM_SELF, 2, 2, np.array([0, 2, 3]), np.array([1, 0, 1]))
     with pytest.raises(InputError, match="expected 3 values"):
         shared.set_values(np.ones(2))
+
+
+@pytest.mark.parametrize("kind", ["rows", "triples", "shuffled", "empty"])
+def test_gather_by_runs_equals_the_positions(kind: str) -> None:
+    """``Gather`` gives ``values[take]``; runs of consecutive positions are kept as runs."""
+    rng = np.random.default_rng(5)
+    values = rng.standard_normal(1000)
+    starts = np.sort(rng.choice(900, size=40, replace=False))
+    take = {"rows": np.concatenate([np.arange(s, s + 20) for s in starts]) % 1000,
+            "triples": np.concatenate([np.arange(s, s + 3) for s in starts]),
+            "shuffled": rng.permutation(1000)[:300],
+            "empty": np.zeros(0, dtype=np.int64)}[kind]
+    gather = Gather(take)
+    out = np.full(take.size, np.nan)
+    gather(values, out)
+    assert np.array_equal(out, values[take])
+    assert (gather.take is None) == (kind in ("rows", "triples"))
+    if gather.take is None:
+        assert gather.in_starts.size <= take.size // 2

@@ -11,8 +11,10 @@ gather per block into PETSc's own storage:
 .. math::  a_k = v_{\pi_A(k)}, \qquad b_k = v_{\pi_B(k)},
 
 with no copy of the values on the PETSc side and none of the per-entry maps that
-``MatSetPreallocationCOO`` keeps (two 8-byte integers per entry). The pattern never changes,
-so every product and factorisation built on the matrix keeps its symbolic part.
+``MatSetPreallocationCOO`` keeps (two 8-byte integers per entry); where ``pi`` runs through
+consecutive positions (a Hessian row's own columns) only the runs are kept (:class:`Gather`).
+The pattern never changes, so every product and factorisation built on the matrix keeps its
+symbolic part.
 """
 
 from __future__ import annotations

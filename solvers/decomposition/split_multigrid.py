@@ -12,7 +12,7 @@ its own vertices on every level and PETSc does the products and the messages.
   ``offset_r + 3 i + k``).
 * Fine level: ``A + tau I`` from the split energy's owned Hessian rows, twice: a
   ``MATMPIAIJ`` over numpy arrays (:class:`solvers.shared_aij.SharedAIJ`) for the Galerkin
-  and phase-space products, and its upper block triangle (``MATMPISBAIJ``, 3 x 3 blocks,
+  products, and its upper block triangle (``MATMPISBAIJ``, 3 x 3 blocks,
   :class:`solvers.shared_aij.BlockUpperCopy`) for the CG and smoother products, which read
   about half the bytes (the serial solver's SBAIJ level copy). Prolongations
   ``P_l = S_l (x) I_3`` as ``MATMPIAIJ``; Galerkin levels ``A_l = P_l^T A_{l+1} P_l`` by the
@@ -31,8 +31,9 @@ its own vertices on every level and PETSc does the products and the messages.
   every set-up; a failed CG with bounds from an earlier Newton iteration gets new ones and
   is repeated unless it met negative curvature), as in the serial solver.
 * With ``options.phase_space`` the wrinkle-phase coarse space of :mod:`.split_phase` deflates
-  CG (A-DEF2 around the V-cycle, from ``x_0 = Q b``), as in the serial solver; with an
-  indefinite ``Z^T A Z`` that matrix's CG runs without the correction.
+  CG (A-DEF2 around the V-cycle, from ``x_0 = Q b``), as in the serial solver (its ``Z^T A Z``
+  from the rank's Hessian rows themselves); with an indefinite ``Z^T A Z`` that matrix's CG
+  runs without the correction.
 
 The PCMG set-up, Galerkin levels and deflated CG are the serial solver's own functions; its
 coarse SBAIJ copies, threads and direct fallback have no distributed form (one rank: serial).
@@ -240,7 +241,7 @@ class SplitMultigridSystem(KrylovBase):
     def _fine_matrices(self) -> tuple[SharedAIJ, BlockUpperCopy]:
         """Build the owned Hessian rows' patterns (columns mapped to PETSc).
 
-        A :class:`SharedAIJ` for the Galerkin and phase-space products, and its upper block
+        A :class:`SharedAIJ` for the Galerkin products, and its upper block
         triangle (:class:`BlockUpperCopy`) for the fine level's CG and smoother products.
         Built with the solver, before any frame: their set-up arrays are gone before the
         evaluations and products of a Newton step need memory.

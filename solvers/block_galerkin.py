@@ -20,6 +20,7 @@ The products from the finest level down form a :class:`GalerkinChain`.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numba
@@ -37,13 +38,51 @@ def full_blocks(bptr: np.ndarray, bcols: np.ndarray) -> tuple[np.ndarray, np.nda
     Scalar row ``3 I + r`` holds the blocks of block row ``I`` in their order, block ``k`` of
     the row at offset ``3 k``: columns ``(3 J_k, 3 J_k + 1, 3 J_k + 2)``.
     """
-    lengths = np.repeat(3 * np.diff(bptr), 3)
-    indptr = np.zeros(lengths.size + 1, dtype=np.int64)
-    np.cumsum(lengths, out=indptr[1:])
+    indptr = scalar_indptr(bptr)
+    lengths = np.diff(indptr)
     segment = (3 * np.asarray(bcols, dtype=np.int64)[:, None] + np.arange(3)).reshape(-1)
     first = np.repeat(3 * np.asarray(bptr[:-1], dtype=np.int64), 3)
     ramp = np.arange(indptr[-1]) - np.repeat(indptr[:-1] - first, lengths)
     return indptr, segment[ramp]
+
+
+def scalar_indptr(bptr: np.ndarray) -> np.ndarray:
+    """Scalar row pointer (int64) of full 3 x 3 blocks on the block row pointer ``bptr``."""
+    lengths = np.repeat(3 * np.diff(np.asarray(bptr, dtype=np.int64)), 3)
+    indptr = np.zeros(lengths.size + 1, dtype=np.int64)
+    np.cumsum(lengths, out=indptr[1:])
+    return indptr
+
+
+@dataclass(frozen=True, eq=False)
+class BlockRows:
+    """A scalar CSR pattern made of full 3 x 3 blocks, held by its blocks.
+
+    Attributes:
+        indptr: Scalar row pointer (int64).
+        bptr: Block row pointer (int64).
+        bcols: Block column of every block, in the rows' order (int64).
+        shape: Scalar shape.
+
+    """
+
+    indptr: np.ndarray
+    bptr: np.ndarray
+    bcols: np.ndarray
+    shape: tuple[int, int]
+
+    @classmethod
+    def of(cls, pattern: sp.csr_matrix) -> BlockRows:
+        """Read and check the blocks of a scalar CSR pattern (:func:`block_pattern`)."""
+        bptr, bcols = block_pattern(pattern)
+        return cls(np.asarray(pattern.indptr, dtype=np.int64), bptr, bcols, pattern.shape)
+
+    @classmethod
+    def full(cls, bptr: np.ndarray, bcols: np.ndarray, block_columns: int) -> BlockRows:
+        """Full 3 x 3 blocks on a block pattern, without building the scalar columns."""
+        indptr = scalar_indptr(bptr)
+        return cls(indptr, np.asarray(bptr, dtype=np.int64), np.asarray(bcols, dtype=np.int64),
+                   (indptr.size - 1, 3 * block_columns))
 
 
 def block_pattern(pattern: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
@@ -64,10 +103,33 @@ def block_pattern(pattern: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
     bptr = np.zeros(n // 3 + 1, dtype=np.int64)
     np.cumsum(per_row, out=bptr[1:])
     k = np.arange(bptr[-1]) - np.repeat(bptr[:-1], per_row)
-    bcols = np.asarray(pattern.indices[np.repeat(pattern.indptr[0:-1:3], per_row) + 3 * k]) // 3
-    if not np.array_equal(full_blocks(bptr, bcols)[1], pattern.indices):
+    bcols = (np.asarray(pattern.indices[np.repeat(pattern.indptr[0:-1:3], per_row) + 3 * k])
+             // 3).astype(np.int64)
+    if not _is_full_blocks(np.asarray(pattern.indptr), np.asarray(pattern.indices), bptr,
+                           bcols):
         raise InputError(message)
-    return bptr, bcols.astype(np.int64)
+    return bptr, bcols
+
+
+@numba.njit(cache=True)
+def _is_full_blocks(indptr: np.ndarray, indices: np.ndarray, bptr: np.ndarray,
+                    bcols: np.ndarray) -> bool:  # pragma: no cover (compiled)
+    """Whether scalar row ``3 I + r`` holds exactly the columns ``3 J_k + (0, 1, 2)``.
+
+    The blocks ``J_k`` of block row I in their order (:func:`full_blocks`' layout), checked
+    entry by entry without building the scalar pattern.
+    """
+    for i in range(bptr.size - 1):
+        for r in range(3):
+            start = indptr[3 * i + r]
+            if indptr[3 * i + r + 1] - start != 3 * (bptr[i + 1] - bptr[i]):
+                return False
+            for k in range(bptr[i], bptr[i + 1]):
+                o = start + 3 * (k - bptr[i])
+                for c in range(3):
+                    if indices[o + c] != 3 * bcols[k] + c:
+                        return False
+    return True
 
 
 def in_ranges(kernel: Any, threads_kernel: Any, cuts: np.ndarray, *args: Any) -> None:

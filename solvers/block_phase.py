@@ -25,6 +25,7 @@ import scipy.sparse as sp
 from meshes.errors import InputError
 from models.shell.schedule import balanced_cuts
 from solvers.block_galerkin import (
+    BlockRows,
     block_pattern,
     close_row,
     full_blocks,
@@ -50,14 +51,15 @@ class TransposeBlockProduct:
 
     """
 
-    def __init__(self, z_pattern: sp.csr_matrix, b_pattern: sp.csr_matrix,
+    def __init__(self, z_pattern: sp.csr_matrix, b_pattern: sp.csr_matrix | BlockRows,
                  threads: int = 1) -> None:
-        if z_pattern.shape[0] != b_pattern.shape[0]:
+        b = b_pattern if isinstance(b_pattern, BlockRows) else BlockRows.of(b_pattern)
+        if z_pattern.shape[0] != b.shape[0]:
             raise InputError(f"TransposeBlockProduct: Z of shape {z_pattern.shape} and B of "
-                             f"shape {b_pattern.shape} do not make Z^T B")
+                             f"shape {b.shape} do not make Z^T B")
         zb_ptr, zb_idx = block_pattern(z_pattern)
-        bb_ptr, bb_idx = block_pattern(b_pattern)
-        n, n_c, m = zb_ptr.size - 1, z_pattern.shape[1] // 3, b_pattern.shape[1] // 3
+        bb_ptr, bb_idx = b.bptr, b.bcols
+        n, n_c, m = zb_ptr.size - 1, z_pattern.shape[1] // 3, b.shape[1] // 3
         z_blocks = sp.csr_matrix((np.ones(zb_idx.size), zb_idx, zb_ptr), shape=(n, n_c))
         b_blocks = sp.csr_matrix((np.ones(bb_idx.size), bb_idx, bb_ptr), shape=(n, m))
         zt = sp.csr_matrix(z_blocks.T)
@@ -71,7 +73,7 @@ class TransposeBlockProduct:
         self._z_rows = np.asarray(z_pattern.indptr, dtype=np.int64)
         self._zt = (zt.indptr.astype(np.int64), zt.indices.astype(np.int64),
                     (zt_pos.data - 1).astype(np.int64) - zb_ptr[zt.indices])
-        self._b = (np.asarray(b_pattern.indptr, dtype=np.int64), bb_ptr, bb_idx)
+        self._b = (b.indptr, bb_ptr, bb_idx)
         self._c = (c.indptr.astype(np.int64), c.indices.astype(np.int64))
         indptr, indices = full_blocks(*self._c)
         self.pattern = sp.csr_matrix((np.zeros(indices.size), indices, indptr),
@@ -122,17 +124,15 @@ class BlockPhaseProduct:
         z_blocks = sp.csr_matrix((np.ones(zb_idx.size), zb_idx, zb_ptr), shape=(n, n_c))
         az = sp.csr_matrix(a_blocks @ z_blocks)
         az.sort_indices()
-        az_rows, az_cols = full_blocks(az.indptr, az.indices)
+        az_rows = BlockRows.full(az.indptr, az.indices, n_c)  # no scalar columns needed
         self._a = (np.asarray(a_pattern.indptr, dtype=np.int64), ab_ptr, ab_idx)
         self._z = (np.asarray(z_pattern.indptr, dtype=np.int64), zb_ptr, zb_idx)
         self._lead = int(z_pattern.indptr[3 * m])  # Z_1's values: the leading ones of Z's
         z_lead = sp.csr_matrix((np.zeros(self._lead), z_pattern.indices[:self._lead],
                                 z_pattern.indptr[:3 * m + 1]), shape=(3 * m, z_pattern.shape[1]))
-        self._az = (az.indptr.astype(np.int64), az.indices.astype(np.int64), az_rows,
-                    np.zeros(az_cols.size))
-        self._transpose = TransposeBlockProduct(
-            z_lead, sp.csr_matrix((self._az[3], az_cols, az_rows), shape=(3 * m, 3 * n_c)),
-            threads)
+        self._az = (az_rows.bptr, az_rows.bcols, az_rows.indptr,
+                    np.zeros(9 * az_rows.bcols.size))
+        self._transpose = TransposeBlockProduct(z_lead, az_rows, threads)
         self.pattern = self._transpose.pattern
         self._cuts = balanced_cuts(self._az[0], threads)
 

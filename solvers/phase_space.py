@@ -120,6 +120,54 @@ def hat_matrix(subdivisions: tuple[sp.spmatrix, ...], level: int) -> sp.csr_matr
     return hats
 
 
+class UnionSum:
+    """Weighted sums of sparse matrices of fixed patterns, on the union of their patterns.
+
+    The positions of every part's entries (in its CSR order) in the union pattern, the
+    diagonal included, are found once; a sum is then an array of the union's values, written
+    part by part, instead of a scipy sum allocating each intermediate matrix.
+
+    Args:
+        parts: Named square CSR matrices (their patterns; values come with each sum).
+
+    Attributes:
+        pattern: The union pattern (sorted CSR, zero values, the full diagonal).
+        diagonal: Positions of the diagonal entries in the union's values.
+        has_penalty: Whether a part is named "penalty".
+
+    """
+
+    def __init__(self, parts: dict[str, sp.csr_matrix]) -> None:
+        n = next(iter(parts.values())).shape[0]
+        keys = {name: _entry_keys(m) for name, m in parts.items()}
+        diagonal = np.arange(n, dtype=np.int64) * (n + 1)
+        union = np.unique(np.concatenate([*keys.values(), diagonal]))
+        self._positions = {name: np.searchsorted(union, k) for name, k in keys.items()}
+        self.diagonal = np.searchsorted(union, diagonal)
+        rows, cols = np.divmod(union, n)
+        self.pattern = sp.csr_matrix(
+            (np.zeros(union.size), cols.astype(PETSc.IntType),
+             np.searchsorted(rows, np.arange(n + 1)).astype(PETSc.IntType)), shape=(n, n))
+        self.has_penalty = "penalty" in parts
+
+    def add(self, values: np.ndarray, name: str, part: sp.csr_matrix, scale: float = 1.0
+            ) -> None:
+        """``values += scale part`` on the union pattern (``part`` in the pattern it had)."""
+        values[self._positions[name]] += scale * part.data
+
+    def matrix(self, values: np.ndarray) -> sp.csr_matrix:
+        """Return the union pattern with ``values`` (sharing the pattern's arrays)."""
+        out = sp.csr_matrix(self.pattern.shape)
+        out.data, out.indices, out.indptr = values, self.pattern.indices, self.pattern.indptr
+        return out
+
+
+def _entry_keys(m: sp.csr_matrix) -> np.ndarray:
+    """``row * n + column`` of every entry of a CSR matrix, in its storage order."""
+    rows = np.repeat(np.arange(m.shape[0], dtype=np.int64), np.diff(m.indptr))
+    return rows * m.shape[1] + m.indices
+
+
 class CoarseSpace:
     """Z's entries and fields and the factorised ``A_Z = Z^T (A + tau I + G^T G) Z``.
 
@@ -163,6 +211,7 @@ class CoarseSpace:
         self._gram: tuple[TransposeBlockProduct | None, sp.csr_matrix | None] = (None, None)
         self._penalty: tuple[Any, Any, Any] | None = None  # (G, G Z, (G Z)^T (G Z))
         self._block_product: BlockPhaseProduct | None = None
+        self._sum: UnionSum | None = None
 
     def _reorder(self, order: np.ndarray, counted: int | None = None) -> None:
         """Permute or select the entries (Z's CSR order; a rank's own and halo rows).
@@ -210,22 +259,30 @@ class CoarseSpace:
             matrix) means the caller must not use the correction.
 
         """
-        if shift_only and self._base is not None:
+        if shift_only and self._base is not None and self._sum is not None:
             base, base_tau = self._base
-            total = (base + (tau - base_tau) * self._gram_matrix()).tocsr()
+            values = base.copy()
+            self._sum.add(values, "gram", self._gram_matrix(), tau - base_tau)
         else:
-            total = self._galerkin_matrix(fine)
+            galerkin = self._galerkin_matrix(fine)
+            penalty = None if g is None else self._penalty_part(g)
+            if self._sum is None or self._sum.has_penalty != (penalty is not None):
+                parts = {"galerkin": galerkin, "gram": self._gram_matrix()}
+                self._sum = UnionSum(parts if penalty is None else {**parts, "penalty": penalty})
+                self._solver = None
+            values = np.zeros(self._sum.pattern.nnz)
+            self._sum.add(values, "galerkin", galerkin)
             if tau:
-                total = total + tau * self._gram_matrix()
-            if g is not None:
-                total = total + self._penalty_part(g)
-            self._base = (total, tau)
-        diagonal = total.diagonal()
-        total = (total + sp.diags(np.where(diagonal > 0, 0.0, 1.0))).tocsr()
-        total.sort_indices()
-        if self._solver is None or self._solver.pattern.nnz != total.nnz:
-            self._solver = SparseDirectSolver(total, LinearSolverOptions(symmetric="ldlt"))
-        return self._solver.factorize(total)
+                self._sum.add(values, "gram", self._gram_matrix(), tau)
+            if penalty is not None:
+                self._sum.add(values, "penalty", penalty)
+            self._base = (values.copy(), tau)
+        diagonal = values[self._sum.diagonal]  # a zero column (no wrinkles under a hat): 1
+        values[self._sum.diagonal] = np.where(diagonal > 0, diagonal, diagonal + 1.0)
+        if self._solver is None:
+            self._solver = SparseDirectSolver(self._sum.pattern,
+                                              LinearSolverOptions(symmetric="ldlt"))
+        return self._solver.factorize(self._sum.matrix(values))
 
     def _csr(self, mat: Any) -> sp.csr_matrix:
         """Copy a product of Z into one scipy matrix (the distributed space gathers it)."""

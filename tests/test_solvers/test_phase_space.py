@@ -6,13 +6,20 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 import shellcases
 
 from meshes.errors import InputError
 from meshes.shells import grid_plate, icosphere
 from models.backend import PETSc
 from solvers.multigrid import MultigridLinearSystem, MultigridOptions, ShellHierarchy
-from solvers.phase_space import PhaseSpace, hat_frames, hat_matrix, surface_gradients
+from solvers.phase_space import (
+    PhaseSpace,
+    UnionSum,
+    hat_frames,
+    hat_matrix,
+    surface_gradients,
+)
 from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver
 
 FAST = MultigridOptions(rtol=1e-8, fallback=False, eigen_estimate="solve", level_format="sbaij")
@@ -181,3 +188,24 @@ def test_indefinite_phase_matrix_leaves_the_correction_out() -> None:
     assert report.usable_spd and mg._phase_ready and mg.stats.indefinite_skips == 1
     dx = mg.solve(-ev.grad)
     assert mg.true_residual(dx, -ev.grad) < 1e-7
+
+
+def test_union_sum_equals_the_scipy_sum_of_its_parts() -> None:
+    """Weighted sums on the union pattern equal scipy's, values changing in fixed patterns."""
+    rng = np.random.default_rng(4)
+    a = sp.random(30, 30, density=0.15, random_state=rng, format="csr")
+    b = sp.random(30, 30, density=0.1, random_state=rng, format="csr")
+    union = UnionSum({"a": a, "b": b})
+    assert union.pattern.has_sorted_indices
+    rows = np.repeat(np.arange(30), np.diff(union.pattern.indptr))
+    assert np.array_equal(rows[union.diagonal], np.arange(30))  # the full diagonal is in
+    assert np.array_equal(union.pattern.indices[union.diagonal], np.arange(30))
+    for _ in range(2):
+        a.data, b.data = rng.standard_normal(a.nnz), rng.standard_normal(b.nnz)
+        values = np.zeros(union.pattern.nnz)
+        union.add(values, "a", a)
+        union.add(values, "b", b, -2.5)
+        expected = (a - 2.5 * b).toarray()
+        assert np.abs(union.matrix(values).toarray() - expected).max() < 1e-15
+        assert np.array_equal(values[union.diagonal], np.diag(expected))
+    assert not union.has_penalty and UnionSum({"penalty": b}).has_penalty

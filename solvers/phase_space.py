@@ -206,7 +206,7 @@ class CoarseSpace:
         self.counted = self.values.size
         """Leading entries of :attr:`values` counted in the column norms (a rank's own rows)."""
         self.z: Any = None
-        self._base: tuple[sp.csr_matrix, float] | None = None
+        self._base: tuple[np.ndarray, float] | None = None  # A_Z values before the fix, tau
         self._solver: SparseDirectSolver | None = None
         self._gram: tuple[TransposeBlockProduct | None, sp.csr_matrix | None] = (None, None)
         self._penalty: tuple[Any, Any, Any] | None = None  # (G, G Z, (G Z)^T (G Z))

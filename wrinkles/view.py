@@ -5,7 +5,9 @@ Xdmf3 reader), warps both by their ``displacement`` (the files store the rest sh
 the shell by ``bending_energy_density`` on a log scale with the range of the last step, shows
 the body as a translucent surface, the rigid balls of ``balls.xdmf`` as spheres of their
 radius, and jumps to the last time step. Open it with ``paraview --script=RUN/view.py``, or
-``pvpython RUN/view.py`` to write ``RUN/view.png`` without a window.
+``pvpython RUN/view.py`` to write ``RUN/view.png`` without a window (on a machine without a
+display, ``xvfb-run -a pvpython RUN/view.py``: a ParaView built for on-screen rendering, as
+Debian's, needs an X server even for ``pvpython``).
 
 ``--pvd`` also writes ``RUN/vtk/{body,shell,balls}.pvd`` with one ``.vtu`` per step whose
 points are already deformed (``displacement`` and the other fields kept as point data), for
@@ -35,6 +37,7 @@ SCRIPT = '''"""ParaView view of a wrinkles run (written by `wrinkles view`).
 
     paraview --script={run}/view.py     # interactive
     pvpython {run}/view.py              # writes {run}/view.png
+    xvfb-run -a pvpython {run}/view.py  # the same without a display
 """
 import os
 from paraview.simple import *  # noqa: F403
@@ -199,7 +202,8 @@ def command_view(args: argparse.Namespace) -> int:
     """Run the ``view`` sub-command; return the exit code."""
     script = write_view_script(args.out)
     print(f"wrote {script}: open it with  paraview --script={script}  (or pvpython {script} "
-          f"for {args.out / 'view.png'})", flush=True)
+          f"for {args.out / 'view.png'}; without a display: xvfb-run -a pvpython {script})",
+          flush=True)
     if args.pvd:
         for path in export_pvd(args.out):
             print(f"wrote {path}", flush=True)

@@ -42,8 +42,8 @@ class TransposeBlockProduct:
     of equal size), in a fixed order.
 
     Args:
-        z_pattern: Scalar CSR pattern of Z (3 n x 3 n_c).
-        b_pattern: Scalar CSR pattern of B (3 n x 3 m).
+        z_pattern: Pattern of Z (3 n x 3 n_c): scalar CSR, or its blocks (:class:`BlockRows`).
+        b_pattern: Pattern of B (3 n x 3 m): scalar CSR, or its blocks.
         threads: Threads of each product.
 
     Attributes:
@@ -51,15 +51,16 @@ class TransposeBlockProduct:
 
     """
 
-    def __init__(self, z_pattern: sp.csr_matrix, b_pattern: sp.csr_matrix | BlockRows,
-                 threads: int = 1) -> None:
+    def __init__(self, z_pattern: sp.csr_matrix | BlockRows,
+                 b_pattern: sp.csr_matrix | BlockRows, threads: int = 1) -> None:
+        z = z_pattern if isinstance(z_pattern, BlockRows) else BlockRows.of(z_pattern)
         b = b_pattern if isinstance(b_pattern, BlockRows) else BlockRows.of(b_pattern)
-        if z_pattern.shape[0] != b.shape[0]:
-            raise InputError(f"TransposeBlockProduct: Z of shape {z_pattern.shape} and B of "
+        if z.shape[0] != b.shape[0]:
+            raise InputError(f"TransposeBlockProduct: Z of shape {z.shape} and B of "
                              f"shape {b.shape} do not make Z^T B")
-        zb_ptr, zb_idx = block_pattern(z_pattern)
+        zb_ptr, zb_idx = z.bptr, z.bcols
         bb_ptr, bb_idx = b.bptr, b.bcols
-        n, n_c, m = zb_ptr.size - 1, z_pattern.shape[1] // 3, b.shape[1] // 3
+        n, n_c, m = zb_ptr.size - 1, z.shape[1] // 3, b.shape[1] // 3
         z_blocks = sp.csr_matrix((np.ones(zb_idx.size), zb_idx, zb_ptr), shape=(n, n_c))
         b_blocks = sp.csr_matrix((np.ones(bb_idx.size), bb_idx, bb_ptr), shape=(n, m))
         zt = sp.csr_matrix(z_blocks.T)
@@ -70,7 +71,7 @@ class TransposeBlockProduct:
         zt_pos.sort_indices()
         c = sp.csr_matrix(zt @ b_blocks)
         c.sort_indices()
-        self._z_rows = np.asarray(z_pattern.indptr, dtype=np.int64)
+        self._z_rows = z.indptr
         self._zt = (zt.indptr.astype(np.int64), zt.indices.astype(np.int64),
                     (zt_pos.data - 1).astype(np.int64) - zb_ptr[zt.indices])
         self._b = (b.indptr, bb_ptr, bb_idx)
@@ -118,18 +119,18 @@ class BlockPhaseProduct:
             raise InputError(f"BlockPhaseProduct: A of shape {a_pattern.shape} and Z of "
                              f"shape {z_pattern.shape} do not make Z_1^T A Z")
         ab_ptr, ab_idx = block_pattern(a_pattern)
-        zb_ptr, zb_idx = block_pattern(z_pattern)
-        m, n, n_c = ab_ptr.size - 1, zb_ptr.size - 1, z_pattern.shape[1] // 3
+        z = BlockRows.of(z_pattern)
+        m, n, n_c = ab_ptr.size - 1, z.bptr.size - 1, z.shape[1] // 3
         a_blocks = sp.csr_matrix((np.ones(ab_idx.size), ab_idx, ab_ptr), shape=(m, n))
-        z_blocks = sp.csr_matrix((np.ones(zb_idx.size), zb_idx, zb_ptr), shape=(n, n_c))
+        z_blocks = sp.csr_matrix((np.ones(z.bcols.size), z.bcols, z.bptr), shape=(n, n_c))
         az = sp.csr_matrix(a_blocks @ z_blocks)
         az.sort_indices()
         az_rows = BlockRows.full(az.indptr, az.indices, n_c)  # no scalar columns needed
         self._a = (np.asarray(a_pattern.indptr, dtype=np.int64), ab_ptr, ab_idx)
-        self._z = (np.asarray(z_pattern.indptr, dtype=np.int64), zb_ptr, zb_idx)
-        self._lead = int(z_pattern.indptr[3 * m])  # Z_1's values: the leading ones of Z's
-        z_lead = sp.csr_matrix((np.zeros(self._lead), z_pattern.indices[:self._lead],
-                                z_pattern.indptr[:3 * m + 1]), shape=(3 * m, z_pattern.shape[1]))
+        self._z = (z.indptr, z.bptr, z.bcols)
+        self._lead = int(z.indptr[3 * m])  # Z_1's values: the leading ones of Z's
+        z_lead = BlockRows(z.indptr[:3 * m + 1], z.bptr[:m + 1], z.bcols[:z.bptr[m]],
+                           (3 * m, z.shape[1]))
         self._az = (az_rows.bptr, az_rows.bcols, az_rows.indptr,
                     np.zeros(9 * az_rows.bcols.size))
         self._transpose = TransposeBlockProduct(z_lead, az_rows, threads)

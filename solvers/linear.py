@@ -737,17 +737,28 @@ def factorize_with_shift(factorize: Callable[[float], FactorReport], diagonal_sc
 
 
 class DiagonalScale:
-    """Mean ``|A_ii|`` of matrices that share one CSR pattern (the shift ladder's scale).
+    """Mean ``|A_ii|`` (the shift ladder's scale) and diagonals of matrices of one CSR pattern.
 
-    The diagonal's positions in the values are found once per pattern (the same
-    ``indptr``/``indices`` objects: the shell assembly's Hessians share them) instead of a
-    search of every row per call; a pattern without the full diagonal uses scipy's
-    ``diagonal()`` (missing entries are zeros).
+    The diagonal's positions in the values are found once per pattern instead of a search of
+    every row per call. A pattern is recognised by the buffers its index arrays live in and
+    its size (the shell assembly's Hessians share their arrays, a rank's Hessian rows are
+    views of them); the arrays are kept referenced while they are the cached pattern, so a
+    buffer cannot be freed and reused by another one. A pattern without the full diagonal
+    uses scipy's ``diagonal()`` (missing entries are zeros).
     """
 
     def __init__(self) -> None:
-        self._pattern: tuple[np.ndarray, np.ndarray] | None = None
+        self._pattern: tuple[Any, ...] | None = None
         self._positions: np.ndarray | None = None
+
+    def diagonal(self, csr: sp.csr_matrix) -> np.ndarray:
+        """Return ``A_ii`` of every row i (a rectangular matrix: its leading square part)."""
+        key = (csr.indptr.ctypes.data, csr.indices.ctypes.data, csr.shape, csr.nnz)
+        if self._pattern is None or self._pattern[:4] != key:
+            self._pattern = (*key, csr.indptr, csr.indices)
+            self._positions = diagonal_positions(csr)
+        return np.asarray(csr.data[self._positions] if self._positions is not None
+                          else csr.diagonal())
 
     def __call__(self, matrix: Any) -> float:
         """Return ``mean |diag(matrix)|``, or 1 when that is 0 (NaN stays NaN).
@@ -756,13 +767,7 @@ class DiagonalScale:
         """
         if not sp.issparse(matrix):
             return float(np.mean(np.abs(matrix.diagonal()))) or 1.0
-        csr = matrix if sp.isspmatrix_csr(matrix) else sp.csr_matrix(matrix)
-        if self._pattern is None or csr.indptr is not self._pattern[0] \
-                or csr.indices is not self._pattern[1]:
-            self._pattern = (csr.indptr, csr.indices)
-            self._positions = diagonal_positions(csr)
-        diagonal = csr.data[self._positions] if self._positions is not None \
-            else csr.diagonal()
+        diagonal = self.diagonal(matrix if sp.isspmatrix_csr(matrix) else sp.csr_matrix(matrix))
         return float(np.mean(np.abs(diagonal))) or 1.0
 
 

@@ -139,15 +139,13 @@ class UnionSum:
 
     def __init__(self, parts: dict[str, sp.csr_matrix]) -> None:
         n = next(iter(parts.values())).shape[0]
-        keys = {name: _entry_keys(m) for name, m in parts.items()}
         diagonal = np.arange(n, dtype=np.int64) * (n + 1)
-        union = np.unique(np.concatenate([*keys.values(), diagonal]))
-        self._positions = {name: np.searchsorted(union, k) for name, k in keys.items()}
-        self.diagonal = np.searchsorted(union, diagonal)
-        rows, cols = np.divmod(union, n)
-        self.pattern = sp.csr_matrix(
-            (np.zeros(union.size), cols.astype(PETSc.IntType),
-             np.searchsorted(rows, np.arange(n + 1)).astype(PETSc.IntType)), shape=(n, n))
+        positions, indptr, cols = union_pattern(
+            [*(entry_keys(m) for m in parts.values()), diagonal], (n, n))
+        self._positions = dict(zip(parts, positions[:-1], strict=True))
+        self.diagonal = positions[-1]
+        self.pattern = sp.csr_matrix((np.zeros(cols.size), cols.astype(PETSc.IntType),
+                                      indptr.astype(PETSc.IntType)), shape=(n, n))
         self.has_penalty = "penalty" in parts
 
     def add(self, values: np.ndarray, name: str, part: sp.csr_matrix, scale: float = 1.0
@@ -162,10 +160,25 @@ class UnionSum:
         return out
 
 
-def _entry_keys(m: sp.csr_matrix) -> np.ndarray:
-    """``row * n + column`` of every entry of a CSR matrix, in its storage order."""
+def entry_keys(m: sp.csr_matrix) -> np.ndarray:
+    """``row * columns + column`` of every entry of a CSR matrix, in its storage order."""
     rows = np.repeat(np.arange(m.shape[0], dtype=np.int64), np.diff(m.indptr))
     return rows * m.shape[1] + m.indices
+
+
+def union_pattern(keys: list[np.ndarray], shape: tuple[int, int]
+                  ) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """Return the sorted union of entry keys (:func:`entry_keys`) as a CSR pattern of ``shape``.
+
+    Returns:
+        ``(positions, indptr, columns)``: every key array's positions in the union's values,
+        and the union's row pointer and columns.
+
+    """
+    union = np.unique(np.concatenate(keys))
+    rows, cols = np.divmod(union, shape[1])
+    return ([np.searchsorted(union, k) for k in keys],
+            np.searchsorted(rows, np.arange(shape[0] + 1)), cols)
 
 
 class CoarseSpace:

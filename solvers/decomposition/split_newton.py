@@ -48,10 +48,10 @@ from solvers.decomposition.patch_energy import PatchEnergy, ShellProblem, leadin
 from solvers.decomposition.patches import bisect_partition
 from solvers.decomposition.split_multigrid import SplitMultigridSystem
 from solvers.linear import (
+    DiagonalScale,
     FactorReport,
     LinearSolverOptions,
     coo_aij,
-    diagonal_positions,
     factor_event_totals,
     factor_ksp,
     factor_status,
@@ -173,7 +173,7 @@ class SplitShellEnergy:
         self._dof_order = stencil_dofs(layout.vertex_order[:, None]).reshape(-1)
         self.owned_dofs = stencil_dofs(self.patch.interior[:, None]).reshape(-1)
         """Global dofs of this rank's vertices, vertex-major (the order of its rows)."""
-        self._diagonal: tuple[int, np.ndarray | None] | None = None  # (nnz, positions)
+        self._diagonal = DiagonalScale()  # the own rows' diagonal, positions found once
 
     @property
     def n_vertices(self) -> int:
@@ -194,13 +194,6 @@ class SplitShellEnergy:
         full = np.empty_like(buf)
         full[self._dof_order] = buf
         return full
-
-    def _owned_diagonal(self, rows: sp.csr_matrix) -> np.ndarray:
-        """Diagonal of this rank's Hessian rows (positions found once in the fixed pattern)."""
-        if self._diagonal is None or self._diagonal[0] != rows.nnz:
-            self._diagonal = (rows.nnz, diagonal_positions(rows))
-        positions = self._diagonal[1]
-        return np.asarray(rows.diagonal() if positions is None else rows.data[positions])
 
     def _local_x(self, x: np.ndarray) -> np.ndarray:
         """Local positions (owned, then halo) from the global x (n, 3)."""
@@ -228,7 +221,7 @@ class SplitShellEnergy:
         hess = None
         if ev.hess is not None:
             rows = leading_rows(ev.hess, m)
-            hess = OwnedRows(rows, self.allgather_owned(self._owned_diagonal(rows)))
+            hess = OwnedRows(rows, self.allgather_owned(self._diagonal.diagonal(rows)))
         return ShellEval(value=value, grad=grad, hess=hess, penalty_factor=None, terms={})
 
 

@@ -32,7 +32,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from models.backend import MPI, PETSc
-from solvers.phase_space import CoarseSpace
+from solvers.phase_space import CoarseSpace, entry_keys, union_pattern
 from solvers.shared_aij import SharedAIJ
 
 
@@ -60,13 +60,10 @@ class FixedSum:
 
     def __init__(self, part: sp.csr_matrix, comm: Any) -> None:
         self.comm, self.shape = comm, part.shape
-        coo = part.tocoo()  # the CSR order of part's values
-        keys = coo.row.astype(np.int64) * part.shape[1] + coo.col
-        union = np.unique(np.concatenate(comm.allgather(keys)))
-        self._at = np.searchsorted(union, keys)
-        rows, self._cols = np.divmod(union, part.shape[1])
-        self._indptr = np.searchsorted(rows, np.arange(part.shape[0] + 1))
-        self._size = union.size
+        positions, self._indptr, self._cols = union_pattern(comm.allgather(entry_keys(part)),
+                                                            part.shape)
+        self._at = positions[comm.rank]
+        self._size = self._cols.size
 
     def __call__(self, values: np.ndarray) -> sp.csr_matrix:
         """Return the sum over the ranks of the matrices with these values (collective)."""

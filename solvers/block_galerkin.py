@@ -222,6 +222,7 @@ class GalerkinChain:
     def __init__(self, pattern: sp.csr_matrix, vertex_prolongations: tuple[sp.spmatrix, ...],
                  threads: int = 1) -> None:
         self.products: list[BlockGalerkin] = []
+        self._images: list[tuple[np.ndarray, np.ndarray]] = []
         for s in reversed(vertex_prolongations):
             self.products.append(BlockGalerkin(pattern, s, threads))
             pattern = self.products[-1].csr
@@ -233,6 +234,40 @@ class GalerkinChain:
             product.update(values)
             values = product.values
         return [product.mat for product in reversed(self.products)]
+
+    def set_shift_images(self, images: list[sp.csr_matrix]) -> None:
+        """Take the identity's Galerkin image on every level, fine to coarse, for :meth:`shift`.
+
+        ``images[k]`` (scalar CSR, sorted) must lie in the pattern of product k
+        (:func:`solvers.multigrid.shift_images`); its entries' positions there are found once.
+        """
+        self._images = []
+        for product, image in zip(self.products, images, strict=True):
+            keys, wanted = entry_keys(product.csr), entry_keys(image)
+            where = np.searchsorted(keys, wanted)
+            if np.any(where >= keys.size) or np.any(keys[np.minimum(where, keys.size - 1)]
+                                                     != wanted):
+                raise InputError("GalerkinChain.set_shift_images: an image entry outside "
+                                 "its level's pattern")
+            self._images.append((where, np.asarray(image.data, dtype=np.float64)))
+
+    def shift(self, step: float) -> list[Any]:
+        """Add ``step`` times the identity's image to every level; the matrices, coarse first.
+
+        The levels of ``A + (tau + step) I`` from those of ``A + tau I`` (the product is
+        linear); needs :meth:`set_shift_images`.
+        """
+        if step:
+            for product, (where, image) in zip(self.products, self._images, strict=True):
+                product.values[where] += step * image
+                product.mat.stateIncrease()
+        return [product.mat for product in reversed(self.products)]
+
+
+def entry_keys(m: sp.csr_matrix) -> np.ndarray:
+    """``row * columns + column`` of every entry of a CSR matrix (int64), in storage order."""
+    rows = np.repeat(np.arange(m.shape[0], dtype=np.int64), np.diff(m.indptr))
+    return rows * m.shape[1] + np.asarray(m.indices, dtype=np.int64)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -89,8 +89,8 @@ class MultigridOptions:
         residual_slack: A solve is accepted when the true relative residual is at most
             ``residual_slack`` times the requested tolerance (>= 1; the recursive CG residual
             drifts from the true one by round-off).
-        fallback: On CG failure solve with the direct factorisation instead (counted in
-            ``KrylovStats.fallbacks``); False returns NaN, a failed direction for the Newton.
+        fallback: On CG failure solve with the direct factorisation instead; False returns
+            NaN, a failed direction for the Newton.
         eigen_estimate: When the Chebyshev bounds ``lambda_max(D^-1 A_l)`` are re-estimated:
             "setup" (every set-up) or "solve" (first set-up of a Newton solve; needs
             ``smoother_pc = "jacobi"``).
@@ -103,9 +103,11 @@ class MultigridOptions:
             deflation (A-DEF2) correction around the V-cycle.
         phase_level: Hierarchy level whose vertex hats modulate the test fields (0 = the
             coarse mesh; ``3 n_level`` columns).
-        threads: Threads (numba ``prange``) of the level products with ``level_format =
-            "sbaij"`` and of the penalty products (>= 1; the rest of CG stays on one). 1
-            never starts a thread pool; keep 1 under MPI (one core per rank).
+        threads: Threads (numba ``prange``) of the "sbaij" level products and the penalty
+            products (>= 1; 1 starts no thread pool; keep 1 under MPI, one core per rank).
+        level_reuse: Newton matrices of a solve served by one computation of the coarse
+            levels (1 = every matrix its own; 0 = by size, :func:`choose_level_reuse`;
+            :meth:`KrylovBase._keep_levels`).
 
     """
 
@@ -126,6 +128,7 @@ class MultigridOptions:
     phase_space: bool = False
     phase_level: int = 0
     threads: int = 1
+    level_reuse: int = 0
 
     def __post_init__(self) -> None:
         check_threads(self.threads, "MultigridOptions.threads")
@@ -148,6 +151,9 @@ class MultigridOptions:
         _check_open(self.ew_max, 0.0, 1.0, "ew_max")
         _check_open(self.ew_gamma, 0.0, 1.0 + 1e-15, "ew_gamma")
         _check_open(self.ew_alpha, 1.0, 2.0 + 1e-15, "ew_alpha")
+        if self.level_reuse < 0:
+            raise InputError(f"MultigridOptions.level_reuse: must be >= 0 (0 = by size), got "
+                             f"{self.level_reuse!r}")
         for name in ("max_iterations", "smoother_degree"):
             if getattr(self, name) < 1:
                 raise InputError(f"MultigridOptions.{name}: must be >= 1, got "
@@ -155,6 +161,21 @@ class MultigridOptions:
         if not self.residual_slack >= 1:
             raise InputError(f"MultigridOptions.residual_slack: must be >= 1, got "
                              f"{self.residual_slack!r}")
+
+
+LEVEL_REUSE_FROM_VERTICES: int = 20000
+"""Shell vertex count from which ``level_reuse = 0`` keeps the coarse levels for two Newton
+matrices (docs/notes/multigrid.md, "Coarse levels kept for two Newton matrices")."""
+
+
+def choose_level_reuse(level_reuse: int, vertices: int) -> int:
+    """Return ``level_reuse`` when >= 1; for 0 (by size) 2 from 20 000 vertices, else 1.
+
+    The bound is :data:`LEVEL_REUSE_FROM_VERTICES`.
+    """
+    if level_reuse:
+        return level_reuse
+    return 2 if vertices >= LEVEL_REUSE_FROM_VERTICES else 1
 
 
 def _check_open(value: float, low: float, high: float, name: str) -> None:
@@ -617,6 +638,9 @@ class KrylovStats:
         fallback_time: Seconds of that in the direct factorisation and solve.
         indefinite_skips: Set-ups whose phase-space matrix was indefinite (their CG ran
             without the phase correction).
+        reused_levels: Set-ups that kept the coarse levels of an earlier Newton matrix
+            (``level_reuse``).
+        level_retries: Failed CG solves repeated with recomputed coarse levels.
 
     """
 
@@ -630,6 +654,8 @@ class KrylovStats:
     fallbacks: int = 0
     fallback_time: float = 0.0
     indefinite_skips: int = 0
+    reused_levels: int = 0
+    level_retries: int = 0
 
 
 class NewtonSystem(Protocol):
@@ -670,18 +696,24 @@ class KrylovSystem(NewtonSystem, Protocol):
 class KrylovBase:
     """State and steps shared by the serial and the distributed multigrid Newton systems.
 
-    The forcing term (:func:`forcing_term`), the once-per-solve Chebyshev bounds, the phase
-    space's test-field state and the set-up counts; a subclass sets ``self.phase`` and
-    ``self._operators`` (the level operators whose state it increases for new bounds), and
-    its CG sets ``self.negative_curvature`` (the last CG met ``p^T A p <= 0``).
+    The forcing term (:func:`forcing_term`), the once-per-solve Chebyshev bounds, when the
+    coarse levels are recomputed (``level_reuse``), the phase space's test-field state and the
+    set-up counts; a subclass sets ``self.phase`` and ``self._operators`` (the level operators
+    whose state it increases for new bounds), its CG sets ``self.negative_curvature`` (the
+    last CG met ``p^T A p <= 0``), and it recomputes its levels in :meth:`_renew_levels`.
 
     Args:
         options: Krylov / multigrid options.
+        vertices: The shell's vertex count (``options.level_reuse = 0`` chooses by it).
+
+    Attributes:
+        level_reuse: Newton matrices served by one computation of the coarse levels.
 
     """
 
-    def __init__(self, options: MultigridOptions) -> None:
+    def __init__(self, options: MultigridOptions, vertices: int = 0) -> None:
         self.options = options
+        self.level_reuse = choose_level_reuse(options.level_reuse, vertices)
         self.stats = KrylovStats()
         self.eta = options.rtol
         self.phase: Any = None
@@ -692,14 +724,44 @@ class KrylovBase:
         self.negative_curvature = False
         self._state: tuple[np.ndarray, np.ndarray] | None = None
         self._fields_stale = True
+        self._levels_age: int | None = None
+        self.levels_reused = False
 
     def reset_forcing(self) -> None:
         """Start a new Newton solve: the next forcing term is ``ew_max`` (no history).
 
-        The next set-up also re-estimates the Chebyshev bounds (``eigen_estimate``).
+        The next set-up also re-estimates the Chebyshev bounds (``eigen_estimate``) and
+        recomputes the coarse levels.
         """
         self._grad_history = (0.0, self.options.ew_max)
         self._estimate_due = True
+        self._levels_age = None
+
+    def _keep_levels(self, new_matrix: bool) -> bool:
+        """Whether this set-up keeps the coarse levels of the last one (shifted to its ``tau``).
+
+        ``new_matrix``: the set-up's matrix is a new evaluation, not the last one with
+        another shift (then the levels are always kept: the shift is exact,
+        :func:`shift_images`). Levels recomputed for matrix ``m`` serve matrices ``m .. m +
+        level_reuse - 1`` of the same Newton solve, their shift moved to each one's; only
+        the V-cycle's coarse levels lag (the fine operator, the Jacobi diagonals and the
+        phase space are exact), and :meth:`solve` repeats a CG failed on them once on new
+        ones. :attr:`levels_reused` says whether the current levels come from an earlier
+        matrix.
+        """
+        age = self._levels_age
+        if age is not None and not new_matrix:
+            return True
+        if age is not None and age + 1 < self.level_reuse:
+            self._levels_age, self.levels_reused = age + 1, True
+            self.stats.reused_levels += 1
+            return True
+        self._levels_age, self.levels_reused = 0, False
+        return False
+
+    def _renew_levels(self) -> None:
+        """Recompute the coarse levels from the current matrix and set the solver up (subclass)."""
+        raise NotImplementedError
 
     def set_gradient_norm(self, grad_norm: float, target: float = 0.0) -> None:
         """Choose the CG tolerance of this Newton iteration from ``||g_k||`` (forcing term).
@@ -733,14 +795,23 @@ class KrylovBase:
         by the subclass's CG: ``p^T A p <= 0``, which no preconditioner changes); then the
         shell Newton's next shift uses the new bounds. Bounds estimated in this Newton
         iteration stay valid for its shifted retries, since a shift ``tau`` only moves the
-        spectrum of ``(D + tau)^{-1} (A + tau I)`` towards 1.
+        spectrum of ``(D + tau)^{-1} (A + tau I)`` towards 1. Likewise a failed CG on
+        coarse levels of an earlier matrix (``level_reuse``) is repeated once on levels
+        recomputed from this one, unless it met negative curvature.
         """
         start = time.perf_counter()
         try:
             x = self._accepted_cg(rhs)
-            if x is None and self._bounds_stale and self.options.eigen_estimate == "solve":
-                self.renew_bounds()
-                if not self.negative_curvature:
+            if x is None:
+                retry = False
+                if self._bounds_stale and self.options.eigen_estimate == "solve":
+                    self.renew_bounds()
+                    retry = True
+                if self.levels_reused and not self.negative_curvature:
+                    self._renew_levels()
+                    self.stats.level_retries += 1
+                    retry = True
+                if retry and not self.negative_curvature:
                     x = self._accepted_cg(rhs)
             return x if x is not None else self._failed(rhs)
         finally:
@@ -815,7 +886,7 @@ class MultigridLinearSystem(KrylovBase):
         for fine, coarse in zip(prolongations[1:], prolongations[:-1], strict=True):
             if fine.shape[1] != coarse.shape[0]:
                 raise InputError("MultigridLinearSystem: prolongation shapes do not chain")
-        super().__init__(options)
+        super().__init__(options, prolongations[-1].shape[0] // 3)
         self.p_scipy = tuple(sp.csr_matrix(p) for p in prolongations)
         self.p_mats = [petsc_aij(p, block=3) for p in self.p_scipy]
         self.fallback = fallback
@@ -823,6 +894,7 @@ class MultigridLinearSystem(KrylovBase):
         self._fine: FineMatrix | None = None
         self._galerkin: list[Any] = []
         self._chain: GalerkinChain | None = None
+        self._levels_shift = 0.0
         self._g_source: sp.csr_matrix | None = None
         self._g_levels: list[sp.csr_matrix | None] = []
         self._coarse_penalty: sp.csr_matrix | None = None
@@ -877,7 +949,12 @@ class MultigridLinearSystem(KrylovBase):
         phase = self._update_phase(hess, ev.penalty_factor, tau, same_matrix)
         if phase is not None and phase.indefinite:
             self.stats.indefinite_skips += 1
-        self._galerkin_products()
+        self._galerkin_products(tau, new_matrix=not same_matrix)
+        self._finish_setup()
+        return self._setup_done(start, FactorReport(success=True, shift=float(tau)))
+
+    def _finish_setup(self) -> None:
+        """Coarse matrix, level operators, smoothers and the KSPs on the current levels."""
         self._update_coarse()
         if self._ksp is None:
             self._ksp = self._create_ksp()
@@ -886,7 +963,13 @@ class MultigridLinearSystem(KrylovBase):
         self._ksp.setUp()
         if self.phase is not None and self._deflated is None:
             self._deflated = self._deflated_ksp()
-        return self._setup_done(start, FactorReport(success=True, shift=float(tau)))
+
+    def _renew_levels(self) -> None:
+        """Recompute the coarse levels from the current matrix and set the solver up."""
+        assert self._current is not None  # factorize() ran first (internal invariant)
+        self._levels_age = None
+        self._galerkin_products(self._current[1], new_matrix=True)
+        self._finish_setup()
 
     def _update_phase(self, hess: sp.csr_matrix, g: sp.csr_matrix | None, tau: float,
                       same_matrix: bool) -> FactorReport | None:
@@ -926,14 +1009,24 @@ class MultigridLinearSystem(KrylovBase):
         self._ksp = None  # the level operators change: rebuilt by _update_coarse/_create_ksp
         self._deflated = None
 
-    def _galerkin_products(self) -> None:
-        """``A_l = P_l^T A_{l+1} P_l`` from the finest down, over 3 x 3 vertex blocks."""
+    def _galerkin_products(self, tau: float, new_matrix: bool) -> None:
+        """``A_l = P_l^T A_{l+1} P_l`` from the finest down, over 3 x 3 vertex blocks.
+
+        Or, when the levels are kept (the same matrix with another shift, or ``level_reuse``),
+        the earlier levels with their shift moved to ``tau`` (:func:`shift_images`).
+        """
         assert self._fine is not None  # set by factorize (internal invariant)
         if self._chain is None:
             self._chain = GalerkinChain(self._fine.csr(),
                                         tuple(p[::3, ::3] for p in self.p_scipy),
                                         self.options.threads)
-        self._galerkin = [*self._chain.update(self._fine.values), self._fine.mat]
+            self._chain.set_shift_images(shift_images(self.p_scipy)[::-1])
+        if self._keep_levels(new_matrix):
+            mats = self._chain.shift(tau - self._levels_shift)
+        else:
+            mats = self._chain.update(self._fine.values)
+        self._levels_shift = tau
+        self._galerkin = [*mats, self._fine.mat]
 
     def _update_coarse(self) -> None:
         """Assemble ``A_0 + G_0^T G_0`` (the constant penalty part kept) into the coarse matrix."""
@@ -1077,6 +1170,24 @@ def shifted_product(ev: Any, tau: float, x: np.ndarray) -> np.ndarray:
     if ev.penalty_factor is not None:
         out += ev.penalty_factor.T @ (ev.penalty_factor @ x)
     return np.asarray(out)
+
+
+def shift_images(prolongations: tuple[sp.csr_matrix, ...] | list[sp.csr_matrix]
+                 ) -> list[sp.csr_matrix]:
+    r"""Galerkin images ``M_l = Q_l^T Q_l`` of the identity on every level below the finest.
+
+    ``Q_l = P_{L-1} \cdots P_l`` prolongs level l to the finest (coarse to fine, ``M_l =
+    P_l^T M_{l+1} P_l`` with ``M_L = I``). The Galerkin product is linear, so the levels of
+    ``A + tau' I`` are those of ``A + tau I`` plus ``(tau' - tau) M_l``: a change of shift
+    without new products. Scalar CSR, sorted, coarse to fine.
+    """
+    images: list[sp.csr_matrix] = []
+    m = sp.identity(prolongations[-1].shape[0], format="csr")
+    for p in reversed(prolongations):
+        m = sp.csr_matrix(p.T @ m @ p)
+        m.sort_indices()
+        images.append(m)
+    return images[::-1]
 
 
 def penalty_levels(g: sp.csr_matrix | None, prolongations: tuple[sp.csr_matrix, ...]

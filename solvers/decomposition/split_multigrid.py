@@ -60,6 +60,7 @@ from solvers.multigrid import (
     galerkin_levels,
     multigrid_cg,
     penalty_levels,
+    shift_images,
 )
 from solvers.phase_space import deflated_cg, hat_matrix
 from solvers.shared_aij import BlockUpperCopy, SharedAIJ
@@ -170,7 +171,7 @@ class SplitMultigridSystem(KrylovBase):
                  geometry: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         if not prolongations:
             raise InputError("SplitMultigridSystem: the hierarchy needs >= 1 subdivision level")
-        super().__init__(options)
+        super().__init__(options, energy.n_vertices)
         self.energy, self.comm = energy, energy.comm
         rank, size = self.comm.rank, self.comm.size
         owners = level_owners(energy.layout.vertex_rank, prolongations)
@@ -185,6 +186,9 @@ class SplitMultigridSystem(KrylovBase):
                                                                    cluster_rank)
         self._fine, self._fine_products = self._fine_matrices()
         self._galerkin: list[Any] = []
+        self._images = [_owned_aij(self.comm, m, level, level) for m, level in
+                        zip(shift_images(prolongations), self.levels[:-1], strict=True)]
+        self._levels_shift = 0.0
         self._coarse: Any = None
         self._ksp: Any = None
         self._vecs: tuple[Any, Any, Any] | None = None
@@ -269,7 +273,28 @@ class SplitMultigridSystem(KrylovBase):
         phase = self._update_phase(rows, tau, same_matrix)
         if phase is not None and phase.indefinite:
             self.stats.indefinite_skips += 1
-        self._galerkin = galerkin_levels(self._fine.mat, self.p_mats, self._galerkin)
+        self._galerkin_products(tau, new_matrix=not same_matrix)
+        self._finish_setup()
+        return self._setup_done(start, FactorReport(success=True, shift=float(tau)))
+
+    def _galerkin_products(self, tau: float, new_matrix: bool) -> None:
+        """Compute the levels by PETSc's ``MatPtAP``, or shift the kept ones to ``tau``.
+
+        Kept (the same matrix with another shift, or ``level_reuse``): the change of shift
+        times the identity's Galerkin image ``M_l`` (:func:`solvers.multigrid.shift_images`)
+        added to each level, whose pattern contains it.
+        """
+        if self._keep_levels(new_matrix):
+            step = tau - self._levels_shift
+            if step:
+                for mat, image in zip(self._galerkin[:-1], self._images, strict=True):
+                    mat.axpy(step, image, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+        else:
+            self._galerkin = galerkin_levels(self._fine.mat, self.p_mats, self._galerkin)
+        self._levels_shift = tau
+
+    def _finish_setup(self) -> None:
+        """Coarse matrix, smoothers and the KSPs on the current levels (collective)."""
         self._update_coarse()
         if self._ksp is None:
             self._ksp = self._create_ksp()
@@ -281,7 +306,13 @@ class SplitMultigridSystem(KrylovBase):
         self._ksp.setUp()
         if self.phase is not None and self._deflated is None:
             self._deflated = self._deflated_ksp()
-        return self._setup_done(start, FactorReport(success=True, shift=float(tau)))
+
+    def _renew_levels(self) -> None:
+        """Recompute the levels from the current matrix and set the solver up (collective)."""
+        assert self._current is not None  # factorize() ran first (internal invariant)
+        self._levels_age = None
+        self._galerkin_products(self._current[1], new_matrix=True)
+        self._finish_setup()
 
     def _update_phase(self, rows: sp.csr_matrix, tau: float,
                       same_matrix: bool) -> FactorReport | None:

@@ -11,7 +11,7 @@ from meshes.errors import InputError
 from meshes.shells import grid_plate
 from solvers.block_galerkin import BlockGalerkin, GalerkinChain, block_pattern
 from solvers.block_phase import BlockPhaseProduct, TransposeBlockProduct
-from solvers.multigrid import ShellHierarchy, galerkin_levels, vector_prolongation
+from solvers.multigrid import ShellHierarchy, galerkin_levels, shift_images, vector_prolongation
 from solvers.phase_space import PhaseSpace, hat_matrix, petsc_aij, scipy_csr
 
 
@@ -120,3 +120,36 @@ def test_transpose_product_of_rectangular_blocks_equals_scipy(threads: int) -> N
     assert np.max(np.abs(mine - expected)) <= 1e-14 * np.max(np.abs(expected))
     with pytest.raises(InputError, match="do not make Z\\^T B"):
         TransposeBlockProduct(z, random_blocks(20, 11, seed=7))
+
+
+def test_a_shifted_chain_equals_the_chain_of_the_shifted_matrix() -> None:
+    """Levels of ``A + tau I`` plus ``step M_l`` are those of ``A + (tau + step) I``.
+
+    ``M_l`` is the identity's Galerkin image (:func:`solvers.multigrid.shift_images`); a
+    retry with another shift or a kept level (``level_reuse``) moves the shift this way.
+    """
+    hier = ShellHierarchy.build(*grid_plate(6, 6), levels=3)
+    energy, x0 = shellcases.compressed_plate(hier.vertices, hier.faces, 32)
+    hess = sp.csr_matrix(energy.evaluate(x0).hess)
+    hess.sort_indices()
+    prolongations = hier.prolongations()
+    diagonal = np.flatnonzero(np.repeat(np.arange(hess.shape[0]), np.diff(hess.indptr))
+                              == hess.indices)
+    chain = GalerkinChain(hess, tuple(p[::3, ::3] for p in prolongations))
+    chain.set_shift_images(shift_images(prolongations)[::-1])
+
+    def shifted(tau: float) -> np.ndarray:
+        values = hess.data.copy()
+        values[diagonal] += tau
+        return values
+
+    chain.update(shifted(0.5))
+    moved = [scipy_csr(m) for m in chain.shift(2.5)]
+    exact = [scipy_csr(m) for m in chain.update(shifted(3.0))]
+    for level, (m, e) in enumerate(zip(moved, exact, strict=True)):
+        err = abs(m - e).max() / abs(e).max()
+        print(f"level {level}: max |shifted - recomputed| / max |recomputed| = {err:.1e}")
+        assert err < 1e-14
+    outside = [sp.csr_matrix(np.ones((m.shape[0], m.shape[0]))) for m in exact][::-1]
+    with pytest.raises(InputError, match="outside its level's pattern"):
+        chain.set_shift_images(outside)

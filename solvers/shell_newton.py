@@ -133,15 +133,13 @@ class ShellNewtonOptions:
     Attributes:
         rtol: Relative gradient tolerance: converged when ``||g|| <= atol + rtol g_ref``.
         atol: Absolute gradient tolerance (energy / length).
-        gradient_scale: ``g_ref`` (energy / length); 0 uses the initial gradient norm. A
-            warm-started frame should pass a fixed scale (e.g. the first frame's ``||g_0||``),
-            otherwise an already good start is driven to an over-tight tolerance.
+        gradient_scale: ``g_ref`` (energy / length); 0 uses the initial gradient norm (a
+            warm-started frame passes a fixed one, else a good start is over-tightened).
         max_iterations: Newton iterations before returning unconverged (best state kept).
         hessian: Hessian mode "exact" | "gauss_newton" | "projected"; "" uses the energy's own
             ``hessian_mode``.
         far_hessian: Optional PSD mode ("gauss_newton" | "projected") used while
-            ``||g|| > switch_rtol g_ref`` before switching to ``hessian``; "" = always
-            ``hessian``.
+            ``||g|| > switch_rtol g_ref``, then ``hessian``; "" = always ``hessian``.
         switch_rtol: Relative gradient norm below which ``far_hessian`` hands over and the
             unshifted Hessian is always tried first.
         linear: Sparse direct solver of the Newton system (assembled penalty).
@@ -150,6 +148,8 @@ class ShellNewtonOptions:
         armijo_c1: Sufficient-decrease constant c1 of the Armijo condition, in (0, 1/2).
         shrink: Step reduction factor of the backtracking line search, in (0, 1).
         max_line_search: Backtracking steps before the step is declared failed.
+        step_growth: Largest multiple of a shifted step passing at ``alpha = 1`` that the line
+            search tries, doubling while W falls (1 = none; 0 = by size, :func:`step_growth`).
         shift: Diagonal shift schedule ``A + tau I`` (fallback for indefinite / failed
             factorisations and non-descent directions).
         shift_decay: While ``||g|| > switch_rtol g_ref``, an iteration after one that needed
@@ -182,6 +182,7 @@ class ShellNewtonOptions:
     armijo_c1: float = 1e-4
     shrink: float = 0.5
     max_line_search: int = 40
+    step_growth: int = 0
     shift: ShiftOptions = field(default_factory=ShiftOptions)
     shift_decay: float = 10.0
     linear_method: str = "direct"
@@ -212,6 +213,28 @@ class ShellNewtonOptions:
         if not self.shift_decay > 1:
             raise InputError(f"ShellNewtonOptions.shift_decay: must be > 1, got "
                              f"{self.shift_decay!r}")
+        if self.step_growth < 0:
+            raise InputError(f"ShellNewtonOptions.step_growth: must be >= 0 (0 = by size), got "
+                             f"{self.step_growth!r}")
+
+
+GROWTH_FROM_VERTICES: int = 20000
+"""Shell vertex count from which ``step_growth = 0`` lengthens shifted steps (up to 8x;
+docs/notes/solver-choice.md, "Lengthened shifted steps")."""
+
+
+def step_growth(growth: int, vertices: int) -> int:
+    """Return ``growth`` when >= 1; for 0 (by size) 8 from 20 000 vertices, else 1.
+
+    A shifted step ``-(A + tau I)^{-1} g`` with ``tau`` near the most negative curvature is
+    short in the soft directions; the ladder lowers ``tau`` by ``shift_decay`` per iteration
+    only. Where the full step already lowers W, doubling it while W keeps falling (a
+    lengthening line search, Nocedal & Wright 2006, sec. 3.5) makes up for that. The bound is
+    :data:`GROWTH_FROM_VERTICES`.
+    """
+    if growth:
+        return growth
+    return 8 if vertices >= GROWTH_FROM_VERTICES else 1
 
 
 def _positive_checks(opts: ShellNewtonOptions) -> None:
@@ -551,6 +574,7 @@ class ShellNewtonSolver:
         self._mode_now = ""
         self._target = 0.0  # gradient tolerance of the running solve (multigrid forcing)
         self._diagonal_scale = DiagonalScale()
+        self._growth = step_growth(self.options.step_growth, energy.n_vertices)
 
     @property
     def shift_state(self) -> np.ndarray:
@@ -691,7 +715,7 @@ class ShellNewtonSolver:
                 self.krylov.set_state(x, getattr(self.energy, "target", None))
         cg_before = self._krylov_count()
         if self._reuse_next():
-            found = self._direction(x, ev, timers)
+            found = self._direction(x, ev, timers, self._last_shift)
             if found is not None:
                 self._factor_age += 1
                 return self._step(x, ev, found, self._last_shift, 0, None, cg_before)
@@ -723,7 +747,7 @@ class ShellNewtonSolver:
             return self.linear.factorize(ev, tau)
 
         def accept(report: FactorReport) -> bool:
-            direction = self._direction(x, ev, timers) if report.usable_spd else None
+            direction = self._direction(x, ev, timers, taus[-1]) if report.usable_spd else None
             found.extend([direction] if direction is not None else [])
             return direction is not None
 
@@ -755,14 +779,15 @@ class ShellNewtonSolver:
         return lambda report: restart_ladder(report, lambda v: shifted_product(ev, 0.0, v), n,
                                              self.options.shift)
 
-    def _direction(self, x: np.ndarray, ev: EnergyEval, timers: _Timers) -> _Direction | None:
-        """Solve with the current factorisation; descent test and line search."""
+    def _direction(self, x: np.ndarray, ev: EnergyEval, timers: _Timers,
+                   tau: float) -> _Direction | None:
+        """Solve with the current factorisation (shift ``tau``); descent test and line search."""
         assert ev.grad is not None  # order >= 1 evaluation
         dx = self.linear.solve(-ev.grad)
         slope = float(ev.grad @ dx)
         if not self._is_descent(ev.grad, dx, slope):
             return None
-        found = self._line_search(x, ev.value, dx, slope, timers)
+        found = self._line_search(x, ev.value, dx, slope, timers, tau > 0)
         if found is None:
             return None
         return _Direction(dx, slope, *found)
@@ -791,16 +816,25 @@ class ShellNewtonSolver:
         return -slope >= self.options.descent_tolerance * np.linalg.norm(g) * np.linalg.norm(dx)
 
     def _line_search(self, x: np.ndarray, w0: float, dx: np.ndarray, slope: float,
-                     timers: _Timers) -> tuple[float, float, int] | None:
-        """Backtracking Armijo: ``(alpha, W(x + alpha dx), reductions)`` or None."""
+                     timers: _Timers, shifted: bool = False) -> tuple[float, float, int] | None:
+        """Backtracking Armijo: ``(alpha, W(x + alpha dx), reductions)`` or None.
+
+        A ``shifted`` step passing at ``alpha = 1`` is doubled while W falls, up to the
+        solver's step growth (:func:`step_growth`); ``alpha`` may then exceed 1.
+        """
         start = time.perf_counter()
         noise = ROUNDOFF_FACTOR * np.finfo(float).eps * abs(w0)
         alpha = 1.0
         try:
             for j in range(self.options.max_line_search):
-                w = self.energy.value((x + alpha * dx).reshape(-1, 3))
+                w = float(self.energy.value((x + alpha * dx).reshape(-1, 3)))
                 if np.isfinite(w) and w <= w0 + self.options.armijo_c1 * alpha * slope + noise:
-                    return alpha, float(w), j
+                    while j == 0 and shifted and 2 * alpha <= self._growth:
+                        longer = float(self.energy.value((x + 2 * alpha * dx).reshape(-1, 3)))
+                        if not (np.isfinite(longer) and longer < w):
+                            break
+                        alpha, w = 2 * alpha, longer
+                    return alpha, w, j
                 alpha *= self.options.shrink
             return None
         finally:

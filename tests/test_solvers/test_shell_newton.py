@@ -14,10 +14,12 @@ from models.shell.rest import RestState
 from models.shell.topology import ShellTopology
 from solvers.linear import LinearSolverOptions, ShiftOptions
 from solvers.shell_newton import (
+    GROWTH_FROM_VERTICES,
     ShellNewtonOptions,
     ShellNewtonSolver,
     ShellSolveError,
     minimize,
+    step_growth,
 )
 
 
@@ -226,3 +228,31 @@ def test_a_solve_starts_its_shifts_where_the_previous_first_iteration_needed_the
     assert third.converged and np.allclose(x3, x2, atol=1e-9)
     assert third.history[0].factorizations == 1
     assert third.history[0].shift == pytest.approx(second.history[0].shift / growth, rel=1e-14)
+
+
+def test_shifted_steps_passing_in_full_are_lengthened_while_the_energy_falls() -> None:
+    """The double well from its maximum: the shifts 20, 10, 5 leave steps 8x too short;
+    ``step_growth = 8`` doubles them to 8x (each a lower W), the unshifted tail keeps
+    ``alpha <= 1``; the same minimum in fewer iterations than plain backtracking."""
+    reports = {}
+    for growth in (1, 8):
+        solver = ShellNewtonSolver(DoubleWellEnergy(), ShellNewtonOptions(
+            rtol=1e-10, step_growth=growth, shift_decay=2))
+        x, reports[growth] = solver.minimize(np.zeros((4, 3)))
+        assert reports[growth].converged and np.all(x < -1.4)
+    plain, longer = reports[1], reports[8]
+    print("steps", [h.step for h in longer.history], "shifts", [h.shift for h in longer.history],
+          f"its {longer.iterations} against {plain.iterations}")
+    assert all(h.step <= 1.0 for h in plain.history)
+    assert [h.step for h in longer.history[:3]] == [8.0, 8.0, 8.0]
+    assert all(h.step <= 1.0 for h in longer.history if h.shift == 0.0)
+    assert longer.energy == pytest.approx(plain.energy, rel=1e-14)
+    assert longer.iterations < plain.iterations
+
+
+def test_step_growth_by_size() -> None:
+    """0 lengthens shifted steps up to 8x from 20 000 shell vertices; a given factor is kept."""
+    assert [step_growth(0, n) for n in (GROWTH_FROM_VERTICES - 1, GROWTH_FROM_VERTICES)] == [1, 8]
+    assert step_growth(4, 10) == 4 and step_growth(1, 10 ** 6) == 1
+    with pytest.raises(InputError, match="ShellNewtonOptions.step_growth"):
+        ShellNewtonOptions(step_growth=-1)

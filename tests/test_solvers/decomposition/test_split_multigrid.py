@@ -51,17 +51,20 @@ def test_level_numbering_gives_every_dof_one_row_inside_its_rank(size: int) -> N
         assert np.all(owner[n.owned // 3] == r)
 
 
-@pytest.mark.parametrize("level_reuse", [1, 2])
-def test_one_rank_split_multigrid_takes_the_serial_multigrid_steps(level_reuse: int) -> None:
+@pytest.mark.parametrize(("level_reuse", "growth"), [(1, 1), (2, 8)])
+def test_one_rank_split_multigrid_takes_the_serial_multigrid_steps(level_reuse: int,
+                                                                   growth: int) -> None:
     """On one rank the split Newton with the distributed multigrid is the serial multigrid
     Newton (same CG, same steps): the same iterations, CG counts and minimiser; also with
-    the coarse levels kept for two Newton matrices (``level_reuse``)."""
+    the coarse levels kept for two Newton matrices and shifted steps lengthened (the large
+    shells' defaults, ``level_reuse``, ``step_growth``)."""
     hier = ShellHierarchy.build(*grid_plate(5, 5), levels=2)
     energy, x0 = shellcases.compressed_plate(hier.vertices, hier.faces, clusters=20)
     clusters = build_clusters(hier.vertices, hier.faces, ClusterOptions(count=20))
     options = ShellNewtonOptions(
         rtol=1e-9, hessian="exact", far_hessian="gauss_newton", linear_method="multigrid",
         gradient_scale=float(np.linalg.norm(energy.evaluate(x0, order=1).grad)),
+        step_growth=growth,
         multigrid=MultigridOptions(forcing="eisenstat_walker", rtol=1e-4, fallback=False,
                                    level_reuse=level_reuse))
     serial = ShellNewtonSolver(energy, options, hierarchy=hier)
@@ -79,6 +82,7 @@ def test_one_rank_split_multigrid_takes_the_serial_multigrid_steps(level_reuse: 
     assert split.options.linear_method == "multigrid"
     reused = split.linear.stats.reused_levels
     assert reused == serial.linear.stats.reused_levels and (reused > 0) == (level_reuse == 2)
+    assert any(it.step > 1.0 for it in rep.history) == (growth > 1)
 
 
 def _result(proc) -> dict:

@@ -195,6 +195,30 @@ class BlockGalerkin:
         self.mat.assemble()
         self.mat.setOption(PETSc.Mat.Option.SYMMETRIC, True)
 
+    def image_positions(self, image: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
+        """Positions in :attr:`values` of ``image (x) I_3`` and its values there.
+
+        ``image``: a vertex-level matrix on C's block pattern (found by block keys, a ninth
+        of the scalar entries).
+        """
+        bptr, bcols = self._c_blocks
+        nb = bptr.size - 1
+        img = sp.csr_matrix(image)
+        img.sort_indices()
+        if img.shape != (nb, nb):
+            raise InputError(f"BlockGalerkin.image_positions: a {img.shape} image for "
+                             f"{nb} coarse vertices")
+        keys = np.repeat(np.arange(nb, dtype=np.int64), np.diff(bptr)) * nb + bcols
+        rows = np.repeat(np.arange(nb, dtype=np.int64), np.diff(img.indptr))
+        wanted = rows * nb + img.indices
+        block = np.minimum(np.searchsorted(keys, wanted), keys.size - 1)
+        if np.any(keys[block] != wanted):
+            raise InputError("GalerkinChain.set_shift_images: an image entry outside its "
+                             "level's pattern")
+        r = np.arange(3)
+        where = self._c_rows[3 * rows[:, None] + r] + 3 * (block - bptr[rows])[:, None] + r
+        return where.ravel(), np.repeat(np.asarray(img.data, dtype=np.float64), 3)
+
     def update(self, a_values: np.ndarray) -> None:
         """Compute C's values from A's (``a_values`` in the pattern's scalar CSR order)."""
         if a_values.ndim != 1 or a_values.size != self._a[0][-1]:
@@ -238,18 +262,12 @@ class GalerkinChain:
     def set_shift_images(self, images: list[sp.csr_matrix]) -> None:
         """Take the identity's Galerkin image on every level, fine to coarse, for :meth:`shift`.
 
-        ``images[k]`` (scalar CSR, sorted) must lie in the pattern of product k
-        (:func:`solvers.multigrid.shift_images`); its entries' positions there are found once.
+        ``images[k]``: the vertex-level ``S^T .. S`` of product k (its scalar image is
+        ``images[k] (x) I_3``; :func:`solvers.multigrid.shift_images` of the vertex
+        prolongations), inside the product's block pattern; positions found once.
         """
-        self._images = []
-        for product, image in zip(self.products, images, strict=True):
-            keys, wanted = entry_keys(product.csr), entry_keys(image)
-            where = np.searchsorted(keys, wanted)
-            if np.any(where >= keys.size) or np.any(keys[np.minimum(where, keys.size - 1)]
-                                                     != wanted):
-                raise InputError("GalerkinChain.set_shift_images: an image entry outside "
-                                 "its level's pattern")
-            self._images.append((where, np.asarray(image.data, dtype=np.float64)))
+        self._images = [product.image_positions(image)
+                        for product, image in zip(self.products, images, strict=True)]
 
     def shift(self, step: float) -> list[Any]:
         """Add ``step`` times the identity's image to every level; the matrices, coarse first.
@@ -262,12 +280,6 @@ class GalerkinChain:
                 product.values[where] += step * image
                 product.mat.stateIncrease()
         return [product.mat for product in reversed(self.products)]
-
-
-def entry_keys(m: sp.csr_matrix) -> np.ndarray:
-    """``row * columns + column`` of every entry of a CSR matrix (int64), in storage order."""
-    rows = np.repeat(np.arange(m.shape[0], dtype=np.int64), np.diff(m.indptr))
-    return rows * m.shape[1] + np.asarray(m.indices, dtype=np.int64)
 
 
 @numba.njit(cache=True, nogil=True)

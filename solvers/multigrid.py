@@ -1020,7 +1020,8 @@ class MultigridLinearSystem(KrylovBase):
             self._chain = GalerkinChain(self._fine.csr(),
                                         tuple(p[::3, ::3] for p in self.p_scipy),
                                         self.options.threads)
-            self._chain.set_shift_images(shift_images(self.p_scipy)[::-1])
+            vertex = [p[::3, ::3] for p in self.p_scipy]
+            self._chain.set_shift_images(shift_images(vertex)[::-1])
         if self._keep_levels(new_matrix):
             mats = self._chain.shift(tau - self._levels_shift)
         else:

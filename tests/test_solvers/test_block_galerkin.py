@@ -135,8 +135,9 @@ def test_a_shifted_chain_equals_the_chain_of_the_shifted_matrix() -> None:
     prolongations = hier.prolongations()
     diagonal = np.flatnonzero(np.repeat(np.arange(hess.shape[0]), np.diff(hess.indptr))
                               == hess.indices)
-    chain = GalerkinChain(hess, tuple(p[::3, ::3] for p in prolongations))
-    chain.set_shift_images(shift_images(prolongations)[::-1])
+    vertex = [p[::3, ::3] for p in prolongations]
+    chain = GalerkinChain(hess, tuple(vertex))
+    chain.set_shift_images(shift_images(vertex)[::-1])
 
     def shifted(tau: float) -> np.ndarray:
         values = hess.data.copy()
@@ -150,6 +151,6 @@ def test_a_shifted_chain_equals_the_chain_of_the_shifted_matrix() -> None:
         err = abs(m - e).max() / abs(e).max()
         print(f"level {level}: max |shifted - recomputed| / max |recomputed| = {err:.1e}")
         assert err < 1e-14
-    outside = [sp.csr_matrix(np.ones((m.shape[0], m.shape[0]))) for m in exact][::-1]
+    outside = [sp.csr_matrix(np.ones((m.shape[0] // 3,) * 2)) for m in exact][::-1]
     with pytest.raises(InputError, match="outside its level's pattern"):
         chain.set_shift_images(outside)

@@ -726,6 +726,7 @@ class KrylovBase:
         self._fields_stale = True
         self._levels_age: int | None = None
         self.levels_reused = False
+        self._current: tuple[Any, float] | None = None  # the set-up's (evaluation, shift)
 
     def reset_forcing(self) -> None:
         """Start a new Newton solve: the next forcing term is ``ew_max`` (no history).
@@ -760,7 +761,18 @@ class KrylovBase:
         return False
 
     def _renew_levels(self) -> None:
-        """Recompute the coarse levels from the current matrix and set the solver up (subclass)."""
+        """Recompute the coarse levels from the current matrix and set the solver up."""
+        assert self._current is not None  # factorize() ran first (internal invariant)
+        self._levels_age = None
+        self._galerkin_products(self._current[1], new_matrix=True)
+        self._finish_setup()
+
+    def _galerkin_products(self, tau: float, new_matrix: bool) -> None:
+        """Compute the coarse levels, or keep them shifted to ``tau`` (subclass)."""
+        raise NotImplementedError
+
+    def _finish_setup(self) -> None:
+        """Set the coarse solve, smoothers and KSPs up on the current levels (subclass)."""
         raise NotImplementedError
 
     def set_gradient_norm(self, grad_norm: float, target: float = 0.0) -> None:
@@ -963,13 +975,6 @@ class MultigridLinearSystem(KrylovBase):
         self._ksp.setUp()
         if self.phase is not None and self._deflated is None:
             self._deflated = self._deflated_ksp()
-
-    def _renew_levels(self) -> None:
-        """Recompute the coarse levels from the current matrix and set the solver up."""
-        assert self._current is not None  # factorize() ran first (internal invariant)
-        self._levels_age = None
-        self._galerkin_products(self._current[1], new_matrix=True)
-        self._finish_setup()
 
     def _update_phase(self, hess: sp.csr_matrix, g: sp.csr_matrix | None, tau: float,
                       same_matrix: bool) -> FactorReport | None:

@@ -307,13 +307,6 @@ class SplitMultigridSystem(KrylovBase):
         if self.phase is not None and self._deflated is None:
             self._deflated = self._deflated_ksp()
 
-    def _renew_levels(self) -> None:
-        """Recompute the levels from the current matrix and set the solver up (collective)."""
-        assert self._current is not None  # factorize() ran first (internal invariant)
-        self._levels_age = None
-        self._galerkin_products(self._current[1], new_matrix=True)
-        self._finish_setup()
-
     def _update_phase(self, rows: sp.csr_matrix, tau: float,
                       same_matrix: bool) -> FactorReport | None:
         """Phase space: new test fields, ``A_Z`` and its factorisation (None: off).

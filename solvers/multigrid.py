@@ -91,9 +91,9 @@ class MultigridOptions:
             drifts from the true one by round-off).
         fallback: On CG failure solve with the direct factorisation instead; False returns
             NaN, a failed direction for the Newton.
-        eigen_estimate: When the Chebyshev bounds ``lambda_max(D^-1 A_l)`` are re-estimated:
-            "setup" (every set-up) or "solve" (first set-up of a Newton solve; needs
-            ``smoother_pc = "jacobi"``).
+        eigen_estimate: When the finest level's Chebyshev bounds ``lambda_max(D^-1 A)`` are
+            re-estimated (:meth:`KrylovBase.renew_bounds`): "setup" (every set-up) or
+            "solve" (a Newton solve's first; needs ``smoother_pc = "jacobi"``).
         level_format: Level matrices ``A_l`` (l >= 1) in the CG and smoother products: "aij"
             (the Galerkin products) or "sbaij" (a symmetric 3 x 3 block copy, upper triangle).
         target_fraction: When > 0, the CG tolerance of an iteration is at least
@@ -859,7 +859,13 @@ class KrylovBase:
         raise NotImplementedError
 
     def renew_bounds(self) -> None:
-        """Make the Chebyshev smoothers re-estimate their bounds at the next solve."""
+        """Make the finest level's Chebyshev smoother re-estimate its bounds at the next solve.
+
+        The coarser levels' operators change state too, but PCMG sets their smoothers up
+        again only when their operators are set again: they keep the bounds of the KSP's
+        first set-up. Setting them again (all levels re-estimated) was measured not to pay
+        (docs/notes/multigrid.md, "Chebyshev bounds of the coarser levels").
+        """
         for op in self._operators:
             op.stateIncrease()
         self.stats.eigen_estimates += 1

@@ -78,7 +78,6 @@ class JointKrylovSystem(KrylovBase):
             raise InputError("JointKrylovSystem: the shell multigrid must run without the "
                              "phase space (its V-cycle is the shell block's preconditioner)")
         super().__init__(shell.options)
-        shell.level_reuse = 1  # the joint CG, not the shell's, repeats failed solves
         self.shell = shell
         self.n = shell.n
         self.shell_factor = shell_factor

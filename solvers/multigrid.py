@@ -105,9 +105,6 @@ class MultigridOptions:
             coarse mesh; ``3 n_level`` columns).
         threads: Threads (numba ``prange``) of the "sbaij" level products and the penalty
             products (>= 1; 1 starts no thread pool; keep 1 under MPI, one core per rank).
-        level_reuse: Newton matrices of a solve served by one computation of the coarse
-            levels (1 = every matrix its own; 0 = by size, :func:`choose_level_reuse`;
-            :meth:`KrylovBase._keep_levels`).
 
     """
 
@@ -128,7 +125,6 @@ class MultigridOptions:
     phase_space: bool = False
     phase_level: int = 0
     threads: int = 1
-    level_reuse: int = 0
 
     def __post_init__(self) -> None:
         check_threads(self.threads, "MultigridOptions.threads")
@@ -151,9 +147,6 @@ class MultigridOptions:
         _check_open(self.ew_max, 0.0, 1.0, "ew_max")
         _check_open(self.ew_gamma, 0.0, 1.0 + 1e-15, "ew_gamma")
         _check_open(self.ew_alpha, 1.0, 2.0 + 1e-15, "ew_alpha")
-        if self.level_reuse < 0:
-            raise InputError(f"MultigridOptions.level_reuse: must be >= 0 (0 = by size), got "
-                             f"{self.level_reuse!r}")
         for name in ("max_iterations", "smoother_degree"):
             if getattr(self, name) < 1:
                 raise InputError(f"MultigridOptions.{name}: must be >= 1, got "
@@ -161,21 +154,6 @@ class MultigridOptions:
         if not self.residual_slack >= 1:
             raise InputError(f"MultigridOptions.residual_slack: must be >= 1, got "
                              f"{self.residual_slack!r}")
-
-
-LEVEL_REUSE_FROM_VERTICES: int = 20000
-"""Shell vertex count from which ``level_reuse = 0`` keeps the coarse levels for two Newton
-matrices (docs/notes/multigrid.md, "Coarse levels kept for two Newton matrices")."""
-
-
-def choose_level_reuse(level_reuse: int, vertices: int) -> int:
-    """Return ``level_reuse`` when >= 1; for 0 (by size) 2 from 20 000 vertices, else 1.
-
-    The bound is :data:`LEVEL_REUSE_FROM_VERTICES`.
-    """
-    if level_reuse:
-        return level_reuse
-    return 2 if vertices >= LEVEL_REUSE_FROM_VERTICES else 1
 
 
 def _check_open(value: float, low: float, high: float, name: str) -> None:
@@ -638,9 +616,6 @@ class KrylovStats:
         fallback_time: Seconds of that in the direct factorisation and solve.
         indefinite_skips: Set-ups whose phase-space matrix was indefinite (their CG ran
             without the phase correction).
-        reused_levels: Set-ups that kept the coarse levels of an earlier Newton matrix
-            (``level_reuse``).
-        level_retries: Failed CG solves repeated with recomputed coarse levels.
 
     """
 
@@ -654,8 +629,6 @@ class KrylovStats:
     fallbacks: int = 0
     fallback_time: float = 0.0
     indefinite_skips: int = 0
-    reused_levels: int = 0
-    level_retries: int = 0
 
 
 class NewtonSystem(Protocol):
@@ -696,24 +669,18 @@ class KrylovSystem(NewtonSystem, Protocol):
 class KrylovBase:
     """State and steps shared by the serial and the distributed multigrid Newton systems.
 
-    The forcing term (:func:`forcing_term`), the once-per-solve Chebyshev bounds, when the
-    coarse levels are recomputed (``level_reuse``), the phase space's test-field state and the
-    set-up counts; a subclass sets ``self.phase`` and ``self._operators`` (the level operators
-    whose state it increases for new bounds), its CG sets ``self.negative_curvature`` (the
-    last CG met ``p^T A p <= 0``), and it recomputes its levels in :meth:`_renew_levels`.
+    The forcing term (:func:`forcing_term`), the once-per-solve Chebyshev bounds, the phase
+    space's test-field state and the set-up counts; a subclass sets ``self.phase`` and
+    ``self._operators`` (the level operators whose state it increases for new bounds), and
+    its CG sets ``self.negative_curvature`` (the last CG met ``p^T A p <= 0``).
 
     Args:
         options: Krylov / multigrid options.
-        vertices: The shell's vertex count (``options.level_reuse = 0`` chooses by it).
-
-    Attributes:
-        level_reuse: Newton matrices served by one computation of the coarse levels.
 
     """
 
-    def __init__(self, options: MultigridOptions, vertices: int = 0) -> None:
+    def __init__(self, options: MultigridOptions) -> None:
         self.options = options
-        self.level_reuse = choose_level_reuse(options.level_reuse, vertices)
         self.stats = KrylovStats()
         self.eta = options.rtol
         self.phase: Any = None
@@ -724,56 +691,15 @@ class KrylovBase:
         self.negative_curvature = False
         self._state: tuple[np.ndarray, np.ndarray] | None = None
         self._fields_stale = True
-        self._levels_age: int | None = None
-        self.levels_reused = False
         self._current: tuple[Any, float] | None = None  # the set-up's (evaluation, shift)
 
     def reset_forcing(self) -> None:
         """Start a new Newton solve: the next forcing term is ``ew_max`` (no history).
 
-        The next set-up also re-estimates the Chebyshev bounds (``eigen_estimate``) and
-        recomputes the coarse levels.
+        The next set-up also re-estimates the Chebyshev bounds (``eigen_estimate``).
         """
         self._grad_history = (0.0, self.options.ew_max)
         self._estimate_due = True
-        self._levels_age = None
-
-    def _keep_levels(self, new_matrix: bool) -> bool:
-        """Whether this set-up keeps the coarse levels of the last one (shifted to its ``tau``).
-
-        ``new_matrix``: the set-up's matrix is a new evaluation, not the last one with
-        another shift (then the levels are always kept: the shift is exact,
-        :func:`shift_images`). Levels recomputed for matrix ``m`` serve matrices ``m .. m +
-        level_reuse - 1`` of the same Newton solve, their shift moved to each one's; only
-        the V-cycle's coarse levels lag (the fine operator, the Jacobi diagonals and the
-        phase space are exact), and :meth:`solve` repeats a CG failed on them once on new
-        ones. :attr:`levels_reused` says whether the current levels come from an earlier
-        matrix.
-        """
-        age = self._levels_age
-        if age is not None and not new_matrix:
-            return True
-        if age is not None and age + 1 < self.level_reuse:
-            self._levels_age, self.levels_reused = age + 1, True
-            self.stats.reused_levels += 1
-            return True
-        self._levels_age, self.levels_reused = 0, False
-        return False
-
-    def _renew_levels(self) -> None:
-        """Recompute the coarse levels from the current matrix and set the solver up."""
-        assert self._current is not None  # factorize() ran first (internal invariant)
-        self._levels_age = None
-        self._galerkin_products(self._current[1], new_matrix=True)
-        self._finish_setup()
-
-    def _galerkin_products(self, tau: float, new_matrix: bool) -> None:
-        """Compute the coarse levels, or keep them shifted to ``tau`` (subclass)."""
-        raise NotImplementedError
-
-    def _finish_setup(self) -> None:
-        """Set the coarse solve, smoothers and KSPs up on the current levels (subclass)."""
-        raise NotImplementedError
 
     def set_gradient_norm(self, grad_norm: float, target: float = 0.0) -> None:
         """Choose the CG tolerance of this Newton iteration from ``||g_k||`` (forcing term).
@@ -807,23 +733,14 @@ class KrylovBase:
         by the subclass's CG: ``p^T A p <= 0``, which no preconditioner changes); then the
         shell Newton's next shift uses the new bounds. Bounds estimated in this Newton
         iteration stay valid for its shifted retries, since a shift ``tau`` only moves the
-        spectrum of ``(D + tau)^{-1} (A + tau I)`` towards 1. Likewise a failed CG on
-        coarse levels of an earlier matrix (``level_reuse``) is repeated once on levels
-        recomputed from this one, unless it met negative curvature.
+        spectrum of ``(D + tau)^{-1} (A + tau I)`` towards 1.
         """
         start = time.perf_counter()
         try:
             x = self._accepted_cg(rhs)
-            if x is None:
-                retry = False
-                if self._bounds_stale and self.options.eigen_estimate == "solve":
-                    self.renew_bounds()
-                    retry = True
-                if self.levels_reused and not self.negative_curvature:
-                    self._renew_levels()
-                    self.stats.level_retries += 1
-                    retry = True
-                if retry and not self.negative_curvature:
+            if x is None and self._bounds_stale and self.options.eigen_estimate == "solve":
+                self.renew_bounds()
+                if not self.negative_curvature:
                     x = self._accepted_cg(rhs)
             return x if x is not None else self._failed(rhs)
         finally:
@@ -904,7 +821,7 @@ class MultigridLinearSystem(KrylovBase):
         for fine, coarse in zip(prolongations[1:], prolongations[:-1], strict=True):
             if fine.shape[1] != coarse.shape[0]:
                 raise InputError("MultigridLinearSystem: prolongation shapes do not chain")
-        super().__init__(options, prolongations[-1].shape[0] // 3)
+        super().__init__(options)
         self.p_scipy = tuple(sp.csr_matrix(p) for p in prolongations)
         self.p_mats = [petsc_aij(p, block=3) for p in self.p_scipy]
         self.fallback = fallback
@@ -1023,8 +940,8 @@ class MultigridLinearSystem(KrylovBase):
     def _galerkin_products(self, tau: float, new_matrix: bool) -> None:
         """``A_l = P_l^T A_{l+1} P_l`` from the finest down, over 3 x 3 vertex blocks.
 
-        Or, when the levels are kept (the same matrix with another shift, or ``level_reuse``),
-        the earlier levels with their shift moved to ``tau`` (:func:`shift_images`).
+        Or, for the last set-up's matrix with another shift, its levels with the shift moved
+        to ``tau`` (:func:`shift_images`; exact, no new products).
         """
         assert self._fine is not None  # set by factorize (internal invariant)
         if self._chain is None:
@@ -1033,7 +950,7 @@ class MultigridLinearSystem(KrylovBase):
                                         self.options.threads)
             vertex = [p[::3, ::3] for p in self.p_scipy]
             self._chain.set_shift_images(shift_images(vertex)[::-1])
-        if self._keep_levels(new_matrix):
+        if not new_matrix and self._galerkin:
             mats = self._chain.shift(tau - self._levels_shift)
         else:
             mats = self._chain.update(self._fine.values)

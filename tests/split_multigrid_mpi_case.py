@@ -54,8 +54,8 @@ def _operator_difference(split: SplitNewtonSolver, energy, x: np.ndarray) -> flo
 def _shift_difference(split: SplitNewtonSolver, x: np.ndarray) -> float:
     """Largest relative difference of the coarse levels shifted 0.5 -> 2 against new products.
 
-    A retry of the same matrix with another shift moves the kept levels' shift
-    (``level_reuse``, :func:`solvers.multigrid.shift_images`); ``A_l v`` for a random v on
+    A retry of the same matrix with another shift moves the levels' shift
+    (:func:`solvers.multigrid.shift_images`); ``A_l v`` for a random v on
     every level, against the levels recomputed at the new shift.
     """
     linear, comm = split.linear, split.comm
@@ -89,7 +89,6 @@ def main() -> None:
     parser.add_argument("--forcing", choices=["fixed", "eisenstat_walker"], default="fixed")
     parser.add_argument("--phase-space", action="store_true")
     parser.add_argument("--eigen-estimate", choices=["setup", "solve"], default="setup")
-    parser.add_argument("--level-reuse", type=int, default=1)
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
     hier = ShellHierarchy.build(*grid_plate(5, 5), levels=2)
@@ -100,8 +99,7 @@ def main() -> None:
         gradient_scale=float(np.linalg.norm(energy.evaluate(x0, order=1).grad)),
         multigrid=MultigridOptions(rtol=args.rtol, forcing=args.forcing, fallback=False,
                                    phase_space=args.phase_space,
-                                   eigen_estimate=args.eigen_estimate,
-                                   level_reuse=args.level_reuse))
+                                   eigen_estimate=args.eigen_estimate))
     x_ref, ref = ShellNewtonSolver(energy, options, hierarchy=hier).minimize(x0)
     problem = ShellProblem(energy.topology, energy.rest, energy.params, clusters.H,
                            np.asarray(energy.target))

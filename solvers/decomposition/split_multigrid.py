@@ -171,7 +171,7 @@ class SplitMultigridSystem(KrylovBase):
                  geometry: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         if not prolongations:
             raise InputError("SplitMultigridSystem: the hierarchy needs >= 1 subdivision level")
-        super().__init__(options, energy.n_vertices)
+        super().__init__(options)
         self.energy, self.comm = energy, energy.comm
         rank, size = self.comm.rank, self.comm.size
         owners = level_owners(energy.layout.vertex_rank, prolongations)
@@ -278,13 +278,13 @@ class SplitMultigridSystem(KrylovBase):
         return self._setup_done(start, FactorReport(success=True, shift=float(tau)))
 
     def _galerkin_products(self, tau: float, new_matrix: bool) -> None:
-        """Compute the levels by PETSc's ``MatPtAP``, or shift the kept ones to ``tau``.
+        """Compute the levels by PETSc's ``MatPtAP``, or shift the last ones to ``tau``.
 
-        Kept (the same matrix with another shift, or ``level_reuse``): the change of shift
-        times the identity's Galerkin image ``M_l`` (:func:`solvers.multigrid.shift_images`)
-        added to each level, whose pattern contains it.
+        For the last set-up's matrix with another shift: the change of shift times the
+        identity's Galerkin image ``M_l`` (:func:`solvers.multigrid.shift_images`) added to
+        each level, whose pattern contains it (exact, no new products).
         """
-        if self._keep_levels(new_matrix):
+        if not new_matrix and self._galerkin:
             step = tau - self._levels_shift
             if step:
                 for mat, image in zip(self._galerkin[:-1], self._images, strict=True):

@@ -126,7 +126,7 @@ def test_a_shifted_chain_equals_the_chain_of_the_shifted_matrix() -> None:
     """Levels of ``A + tau I`` plus ``step M_l`` are those of ``A + (tau + step) I``.
 
     ``M_l`` is the identity's Galerkin image (:func:`solvers.multigrid.shift_images`); a
-    retry with another shift or a kept level (``level_reuse``) moves the shift this way.
+    retry of the same matrix with another shift moves the levels' shift this way.
     """
     hier = ShellHierarchy.build(*grid_plate(6, 6), levels=3)
     energy, x0 = shellcases.compressed_plate(hier.vertices, hier.faces, 32)

@@ -1108,7 +1108,8 @@ def shift_images(prolongations: tuple[sp.csr_matrix, ...] | list[sp.csr_matrix]
     ``Q_l = P_{L-1} \cdots P_l`` prolongs level l to the finest (coarse to fine, ``M_l =
     P_l^T M_{l+1} P_l`` with ``M_L = I``). The Galerkin product is linear, so the levels of
     ``A + tau' I`` are those of ``A + tau I`` plus ``(tau' - tau) M_l``: a change of shift
-    without new products. Scalar CSR, sorted, coarse to fine.
+    without new products. CSR (scalar or vertex-level, as the prolongations), sorted,
+    coarse to fine.
     """
     images: list[sp.csr_matrix] = []
     m = sp.identity(prolongations[-1].shape[0], format="csr")

@@ -208,13 +208,13 @@ class BlockGalerkin:
         if img.shape != (nb, nb):
             raise InputError(f"BlockGalerkin.image_positions: a {img.shape} image for "
                              f"{nb} coarse vertices")
-        keys = np.repeat(np.arange(nb, dtype=np.int64), np.diff(bptr)) * nb + bcols
-        rows = np.repeat(np.arange(nb, dtype=np.int64), np.diff(img.indptr))
-        wanted = rows * nb + img.indices
+        keys = entry_keys(sp.csr_matrix((np.ones(bcols.size), bcols, bptr), shape=(nb, nb)))
+        wanted = entry_keys(img)
+        rows = wanted // nb
         block = np.minimum(np.searchsorted(keys, wanted), keys.size - 1)
         if np.any(keys[block] != wanted):
-            raise InputError("GalerkinChain.set_shift_images: an image entry outside its "
-                             "level's pattern")
+            raise InputError("BlockGalerkin.image_positions: an image entry outside the "
+                             "level's block pattern")
         r = np.arange(3)
         where = self._c_rows[3 * rows[:, None] + r] + 3 * (block - bptr[rows])[:, None] + r
         return where.ravel(), np.repeat(np.asarray(img.data, dtype=np.float64), 3)
@@ -280,6 +280,12 @@ class GalerkinChain:
                 product.values[where] += step * image
                 product.mat.stateIncrease()
         return [product.mat for product in reversed(self.products)]
+
+
+def entry_keys(m: sp.csr_matrix) -> np.ndarray:
+    """``row * columns + column`` of every entry of a CSR matrix, in its storage order."""
+    rows = np.repeat(np.arange(m.shape[0], dtype=np.int64), np.diff(m.indptr))
+    return rows * m.shape[1] + m.indices
 
 
 @numba.njit(cache=True, nogil=True)

@@ -691,7 +691,6 @@ class KrylovBase:
         self.negative_curvature = False
         self._state: tuple[np.ndarray, np.ndarray] | None = None
         self._fields_stale = True
-        self._current: tuple[Any, float] | None = None  # the set-up's (evaluation, shift)
 
     def reset_forcing(self) -> None:
         """Start a new Newton solve: the next forcing term is ``ew_max`` (no history).
@@ -945,10 +944,8 @@ class MultigridLinearSystem(KrylovBase):
         """
         assert self._fine is not None  # set by factorize (internal invariant)
         if self._chain is None:
-            self._chain = GalerkinChain(self._fine.csr(),
-                                        tuple(p[::3, ::3] for p in self.p_scipy),
-                                        self.options.threads)
-            vertex = [p[::3, ::3] for p in self.p_scipy]
+            vertex = tuple(p[::3, ::3] for p in self.p_scipy)
+            self._chain = GalerkinChain(self._fine.csr(), vertex, self.options.threads)
             self._chain.set_shift_images(shift_images(vertex)[::-1])
         if not new_matrix and self._galerkin:
             mats = self._chain.shift(tau - self._levels_shift)

@@ -50,6 +50,7 @@ import scipy.sparse as sp
 from meshes.errors import InputError
 from models.backend import PETSc
 from models.shell.rest import area_weighted_normals
+from solvers.block_galerkin import entry_keys
 from solvers.block_phase import BlockPhaseProduct, TransposeBlockProduct
 from solvers.linear import FactorReport, LinearSolverOptions, SparseDirectSolver
 
@@ -158,12 +159,6 @@ class UnionSum:
         out = sp.csr_matrix(self.pattern.shape)
         out.data, out.indices, out.indptr = values, self.pattern.indices, self.pattern.indptr
         return out
-
-
-def entry_keys(m: sp.csr_matrix) -> np.ndarray:
-    """``row * columns + column`` of every entry of a CSR matrix, in its storage order."""
-    rows = np.repeat(np.arange(m.shape[0], dtype=np.int64), np.diff(m.indptr))
-    return rows * m.shape[1] + m.indices
 
 
 def union_pattern(keys: list[np.ndarray], shape: tuple[int, int]

@@ -152,5 +152,5 @@ def test_a_shifted_chain_equals_the_chain_of_the_shifted_matrix() -> None:
         print(f"level {level}: max |shifted - recomputed| / max |recomputed| = {err:.1e}")
         assert err < 1e-14
     outside = [sp.csr_matrix(np.ones((m.shape[0] // 3,) * 2)) for m in exact][::-1]
-    with pytest.raises(InputError, match="outside its level's pattern"):
+    with pytest.raises(InputError, match="outside the level's block pattern"):
         chain.set_shift_images(outside)

@@ -241,11 +241,10 @@ class CoarseSpace:
         grads = np.stack([g @ d for g in self.gradients], axis=-1)      # (n, 3 comp, 3 dir)
         z_values(self.values, self.hat_value, self.vertex, self.component, self.field,
                  self.hat, self.frames, d, grads)
-        own = slice(0, self.counted)
-        norms = self._column_sums(np.bincount(self.column[own], self.values[own] ** 2,
-                                              self.n_columns))
+        norms = self._column_sums(column_squares(self.values, self.column, self.counted,
+                                                 self.n_columns))
         scale = np.where(norms > 0, 1.0 / np.sqrt(np.where(norms > 0, norms, 1.0)), 0.0)
-        self.values *= scale[self.column]
+        scale_columns(self.values, self.column, scale)
         self._base, self._gram = None, (self._gram[0], None)
 
     def update(self, fine: sp.csr_matrix, g: Any, tau: float = 0.0,
@@ -426,6 +425,24 @@ def z_values(out: np.ndarray, hat_value: np.ndarray, vertex: np.ndarray, compone
             t = frames[hat[e], m - 1]
             value = t[0] * grads[v, c, 0] + t[1] * grads[v, c, 1] + t[2] * grads[v, c, 2]
         out[e] = hat_value[e] * value
+
+
+@numba.njit(cache=True)
+def column_squares(values: np.ndarray, column: np.ndarray, counted: int,
+                   n_columns: int) -> np.ndarray:  # pragma: no cover (compiled)
+    """Sum of ``values[e]**2`` per column over the first ``counted`` entries (no temporaries)."""
+    out = np.zeros(n_columns)
+    for e in range(counted):
+        out[column[e]] += values[e] * values[e]
+    return out
+
+
+@numba.njit(cache=True)
+def scale_columns(values: np.ndarray, column: np.ndarray,
+                  scale: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """``values[e] *= scale[column[e]]`` in place."""
+    for e in range(values.size):
+        values[e] *= scale[column[e]]
 
 
 def petsc_aij(csr: sp.csr_matrix, block: int = 1) -> Any:

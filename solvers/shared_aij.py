@@ -105,6 +105,27 @@ class SharedAIJ:
         """Entries on this rank (the length of :meth:`set_values`' input)."""
         return self._take[0].size + self._take[1].size
 
+    def entry_positions(self) -> np.ndarray:
+        """Position of every entry (the constructor's order) in :attr:`block_values`' concatenation.
+
+        For callers that add values into the blocks themselves (then :meth:`values_changed`).
+        """
+        positions = np.empty(self.nnz, dtype=np.int64)
+        offset = 0
+        for gather in self._take:
+            positions[gather.expanded()] = offset + np.arange(gather.size)
+            offset += gather.size
+        return positions
+
+    @property
+    def block_values(self) -> tuple[np.ndarray, np.ndarray]:
+        """The diagonal and off-diagonal blocks' value arrays, which PETSc reads in place."""
+        return self._blocks[0][2], self._blocks[1][2]
+
+    def values_changed(self) -> None:
+        """Tell PETSc that :attr:`block_values` were written (its object state is bumped)."""
+        self.mat.stateIncrease()
+
     def set_values(self, values: np.ndarray, shift: float = 0.0) -> None:
         """Take the entries' values (in the constructor's order), plus ``shift`` on the diagonal.
 
@@ -152,6 +173,15 @@ class Gather:
         else:
             self.out_starts, self.in_starts = None, np.zeros(0, dtype=index)
             self.take = take.astype(index)
+
+    def expanded(self) -> np.ndarray:
+        """Return the positions ``take`` themselves, (m,)."""
+        if self.take is not None:
+            return self.take
+        assert self.out_starts is not None  # one of the two forms (internal invariant)
+        lengths = np.diff(self.out_starts).astype(np.int64)
+        return (np.repeat(self.in_starts.astype(np.int64) - self.out_starts[:-1], lengths)
+                + np.arange(self.size))
 
     def __call__(self, values: np.ndarray, out: np.ndarray) -> None:
         """``out[:] = values[take]``."""

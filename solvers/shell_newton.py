@@ -650,8 +650,9 @@ class ShellNewtonSolver:
                                       report)
             history.append(step.record)
             x = step.x
-            ev = self._next_evaluation(x, timers, self._mode(_grad_norm(ev), switch),
-                                       step.record.grad_norm)
+            mode = self._mode(_grad_norm(ev), switch)
+            del ev  # the last Hessian goes before the next one is assembled (peak memory)
+            ev = self._next_evaluation(x, timers, mode, step.record.grad_norm)
             if progress.update(step.record.energy, ev.value, _grad_norm(ev)) \
                     >= opts.stagnation_iterations:
                 self._stagnated(x, ev, tol, history, timers)

@@ -10,13 +10,12 @@ its own vertices on every level and PETSc does the products and the messages.
   at the same place), so a prolongation row and most of its columns live on one rank.
   PETSc numbers each level rank by rank (dof ``3 v + k`` of rank r's ``i``-th vertex is
   ``offset_r + 3 i + k``).
-* Fine level: ``A + tau I`` from the split energy's owned Hessian rows, twice: a
-  ``MATMPIAIJ`` over numpy arrays (:class:`solvers.shared_aij.SharedAIJ`) for the Galerkin
-  products, and its upper block triangle (``MATMPISBAIJ``, 3 x 3 blocks,
-  :class:`solvers.shared_aij.BlockUpperCopy`) for the CG and smoother products, which read
-  about half the bytes (the serial solver's SBAIJ level copy). Prolongations
-  ``P_l = S_l (x) I_3`` as ``MATMPIAIJ``; Galerkin levels ``A_l = P_l^T A_{l+1} P_l`` by the
-  parallel ``MatPtAP`` (symbolic product reused).
+* Fine level: ``A + tau I`` from the split energy's owned Hessian rows as their upper block
+  triangle (``MATMPISBAIJ``, 3 x 3 blocks, :class:`solvers.shared_aij.BlockUpperCopy`) for
+  the CG and smoother products (half the bytes of the full rows). The level below it is
+  summed over 3 x 3 blocks from every rank's rows (:class:`.split_galerkin.SplitGalerkin`:
+  no fine AIJ, no stored ``A P``); the coarser ``A_l = P_l^T A_{l+1} P_l`` by PETSc's
+  parallel ``MatPtAP`` (symbolic product reused), ``P_l = S_l (x) I_3`` as ``MATMPIAIJ``.
 * Penalty: as in the serial solver, ``G^T G`` (``G = sqrt(2 k_P) H (x) I_3``) is never
   assembled on the fine levels: level ``l`` applies ``A_l + G_l^T G_l`` matrix-free
   (``G_l = G_{l+1} P_l``, rows owned by the cluster's owner), Jacobi reads
@@ -42,6 +41,7 @@ coarse SBAIJ copies, threads and direct fallback have no distributed form (one r
 from __future__ import annotations
 
 import time
+import weakref
 from dataclasses import dataclass
 from typing import Any
 
@@ -50,6 +50,7 @@ import scipy.sparse as sp
 
 from meshes.errors import InputError
 from models.backend import PETSc
+from solvers.decomposition.split_galerkin import SplitGalerkin
 from solvers.decomposition.split_phase import SplitPhaseSpace
 from solvers.linear import FactorReport
 from solvers.multigrid import (
@@ -63,7 +64,7 @@ from solvers.multigrid import (
     shift_images,
 )
 from solvers.phase_space import deflated_cg, hat_matrix
-from solvers.shared_aij import BlockUpperCopy, SharedAIJ
+from solvers.shared_aij import BlockUpperCopy
 
 
 def level_owners(fine_owner: np.ndarray, prolongations: tuple[sp.csr_matrix, ...]
@@ -171,6 +172,10 @@ class SplitMultigridSystem(KrylovBase):
                  geometry: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         if not prolongations:
             raise InputError("SplitMultigridSystem: the hierarchy needs >= 1 subdivision level")
+        if options.smoother_pc != "jacobi":
+            raise InputError(f"MultigridOptions.smoother_pc: {options.smoother_pc!r} has no "
+                             "distributed form (PETSc's parallel SOR takes no 3 x 3 blocks "
+                             "of the fine SBAIJ level); use 'jacobi' on more than one rank")
         super().__init__(options)
         self.energy, self.comm = energy, energy.comm
         rank, size = self.comm.rank, self.comm.size
@@ -184,7 +189,7 @@ class SplitMultigridSystem(KrylovBase):
                        for i, p in enumerate(prolongations)]
         self._penalty, self._coarse_penalty = self._penalty_levels(g, prolongations,
                                                                    cluster_rank)
-        self._fine, self._fine_products = self._fine_matrices()
+        self._finest, self._fine_products = self._fine_matrices(prolongations[-1])
         self._galerkin: list[Any] = []
         self._images = [_owned_aij(self.comm, m, level, level) for m, level in
                         zip(shift_images(prolongations), self.levels[:-1], strict=True)]
@@ -192,7 +197,7 @@ class SplitMultigridSystem(KrylovBase):
         self._coarse: Any = None
         self._ksp: Any = None
         self._vecs: tuple[Any, Any, Any] | None = None
-        self._current: tuple[Any, float] | None = None
+        self._current: weakref.ref[Any] | None = None
         self.phase = self._phase_space(prolongations, geometry)
         self._phase_ready = False
         self._deflated: Any = None
@@ -242,22 +247,27 @@ class SplitMultigridSystem(KrylovBase):
 
     # ----------------------------------------------------------------------------- set-up
 
-    def _fine_matrices(self) -> tuple[SharedAIJ, BlockUpperCopy]:
-        """Build the owned Hessian rows' patterns (columns mapped to PETSc).
+    def _fine_matrices(self, p: sp.csr_matrix) -> tuple[SplitGalerkin, BlockUpperCopy]:
+        """Build the owned Hessian rows' products: the level below, and the fine level's.
 
-        A :class:`SharedAIJ` for the Galerkin products, and its upper block
-        triangle (:class:`BlockUpperCopy`) for the fine level's CG and smoother products.
-        Built with the solver, before any frame: their set-up arrays are gone before the
-        evaluations and products of a Newton step need memory.
+        The Galerkin product onto the next coarser level (:class:`SplitGalerkin`, ``p`` its
+        prolongation) and the rows' upper block triangle (:class:`BlockUpperCopy`) for the
+        fine level's CG and smoother products. Built with the solver, before any frame:
+        their set-up arrays are gone before the evaluations and products of a Newton step
+        need memory.
         """
-        patch, fine = self.energy.patch, self.levels[-1]
+        patch, fine, coarse = self.energy.patch, self.levels[-1], self.levels[-2]
         indptr, indices = self.energy.hessian_rows_pattern()
-        col_dofs = fine.dof[(3 * patch.local[:, None] + np.arange(3)).reshape(-1)]
-        cols = col_dofs.astype(PETSc.IntType)[indices]
-        matrix = SharedAIJ(self.comm, fine.local_size, fine.size, indptr, cols)
-        if matrix.diagonal.size != fine.local_size:
+        rows = np.repeat(np.arange(indptr.size - 1, dtype=np.int32), np.diff(indptr))
+        if np.count_nonzero(indices == rows) != fine.local_size:  # local dof i is row i
             raise InputError("SplitMultigridSystem: the Hessian rows must contain the diagonal")
-        return matrix, BlockUpperCopy(self.comm, fine.local_size, fine.size, indptr, cols)
+        del rows
+        local_dofs = (3 * patch.local[:, None] + np.arange(3)).reshape(-1)
+        cols = fine.dof[local_dofs].astype(PETSc.IntType)[indices]
+        finest = SplitGalerkin(self.comm, indptr, indices, patch.local,
+                               sp.csr_matrix(p[::3, ::3]), coarse.owner, coarse.dof,
+                               coarse.offsets, self.options.threads)
+        return finest, BlockUpperCopy(self.comm, fine.local_size, fine.size, indptr, cols)
 
     def factorize(self, ev: Any, tau: float) -> FactorReport:
         """Set the preconditioner up for ``ev.hess + tau I (+ G^T G)`` (collective)."""
@@ -266,19 +276,21 @@ class SplitMultigridSystem(KrylovBase):
         if rows is None:
             raise InputError("SplitMultigridSystem.factorize: expected the split energy's "
                              "owned Hessian rows")
-        self._fine.set_values(rows.data, tau)
         self._fine_products.set_values(rows.data, tau)
-        same_matrix = self._current is not None and self._current[0] is ev
-        self._current = (ev, float(tau))
+        same_matrix = self._current is not None and self._current() is ev
+        self._current = weakref.ref(ev)  # identity only: the Newton frees an old Hessian
         phase = self._update_phase(rows, tau, same_matrix)
         if phase is not None and phase.indefinite:
             self.stats.indefinite_skips += 1
-        self._galerkin_products(tau, new_matrix=not same_matrix)
+        self._galerkin_products(rows, tau, new_matrix=not same_matrix)
         self._finish_setup()
         return self._setup_done(start, FactorReport(success=True, shift=float(tau)))
 
-    def _galerkin_products(self, tau: float, new_matrix: bool) -> None:
-        """Compute the levels by PETSc's ``MatPtAP``, or shift the last ones to ``tau``.
+    def _galerkin_products(self, rows: sp.csr_matrix, tau: float, new_matrix: bool) -> None:
+        """Compute the levels below the fine one, or shift the last ones to ``tau``.
+
+        The level below the fine one from the Hessian ``rows`` (:class:`SplitGalerkin`), the
+        coarser ones by PETSc's ``MatPtAP``.
 
         For the last set-up's matrix with another shift: the change of shift times the
         identity's Galerkin image ``M_l`` (:func:`solvers.multigrid.shift_images`) added to
@@ -287,10 +299,11 @@ class SplitMultigridSystem(KrylovBase):
         if not new_matrix and self._galerkin:
             step = tau - self._levels_shift
             if step:
-                for mat, image in zip(self._galerkin[:-1], self._images, strict=True):
+                for mat, image in zip(self._galerkin, self._images, strict=True):
                     mat.axpy(step, image, PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
         else:
-            self._galerkin = galerkin_levels(self._fine.mat, self.p_mats, self._galerkin)
+            below = self._finest.update(rows.data, tau)
+            self._galerkin = galerkin_levels(below, self.p_mats[:-1], self._galerkin)
         self._levels_shift = tau
 
     def _finish_setup(self) -> None:
@@ -366,9 +379,7 @@ class SplitMultigridSystem(KrylovBase):
         """CG (unpreconditioned norm) + PCMG: Chebyshev/Jacobi levels, MUMPS coarse."""
         self._operators = [self._level_operator(level) for level in range(1, len(self.levels))]
         levels = [self._coarse, *self._operators]
-        smoothers = [self._galerkin[level] if self.options.smoother_pc == "sor" and level
-                     else op for level, op in enumerate(levels)]
-        ksp, self._jacobi = multigrid_cg(self.comm, levels, smoothers, self.p_mats,
+        ksp, self._jacobi = multigrid_cg(self.comm, levels, levels, self.p_mats,
                                          self.options, f"wrinkles_split_mg{id(self)}_")
         b, x = self._operators[-1].createVecs()
         self._vecs = (b, x, b.duplicate())  # right-hand side, solution, residual

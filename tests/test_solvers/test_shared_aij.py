@@ -167,6 +167,28 @@ def test_gather_by_runs_equals_the_positions(kind: str) -> None:
     out = np.full(take.size, np.nan)
     gather(values, out)
     assert np.array_equal(out, values[take])
+    assert np.array_equal(gather.expanded(), take)
     assert (gather.take is None) == (kind in ("rows", "triples"))
     if gather.take is None:
         assert gather.in_starts.size <= take.size // 2
+
+
+def test_values_written_at_the_entry_positions_equal_set_values() -> None:
+    """Writing entry k's value at ``entry_positions()[k]`` of the blocks is ``set_values``."""
+    a = _rows(30, seed=8)
+    values = np.random.default_rng(2).standard_normal(a.nnz)
+    by_gather = SharedAIJ(MPI.COMM_SELF, 30, 30, a.indptr, a.indices)
+    by_gather.set_values(values)
+    direct = SharedAIJ(MPI.COMM_SELF, 30, 30, a.indptr, a.indices)
+    blocks = np.concatenate(direct.block_values)
+    blocks[direct.entry_positions()] = values
+    diagonal, other = direct.block_values
+    diagonal[:], other[:] = blocks[: diagonal.size], blocks[diagonal.size:]
+    direct.values_changed()
+    x, y = direct.mat.createVecs()
+    x.setArray(np.arange(30.0))
+    y_ref = y.duplicate()
+    direct.mat.mult(x, y)
+    by_gather.mat.mult(x, y_ref)
+    assert np.array_equal(y.getArray(), y_ref.getArray())
+    assert np.allclose(y.getArray(), sp.csr_matrix((values, a.indices, a.indptr)) @ np.arange(30.0))

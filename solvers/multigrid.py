@@ -1176,7 +1176,8 @@ def multigrid_cg(comm: Any, operators: list[Any], smoothers: list[Any], interpol
         pc.getMGSmoother(level).setOperators(op, smoother)
     ksp.setOperators(operators[-1])
     python = options.eigen_estimate == "solve"
-    values = pcmg_options(options.smoother_degree, "python" if python else options.smoother_pc)
+    values = pcmg_options(options.smoother_degree, "python" if python else options.smoother_pc,
+                          distributed=comm.size > 1)
     db = PETSc.Options()
     for key, value in values.items():
         db.setValue(prefix + key, value)
@@ -1194,14 +1195,21 @@ def multigrid_cg(comm: Any, operators: list[Any], smoothers: list[Any], interpol
     return ksp, jacobi
 
 
-def pcmg_options(degree: int, smoother_pc: str) -> dict[str, str]:
-    """PETSc options (below the solver's prefix) of the level smoothers and the coarse solve."""
+def pcmg_options(degree: int, smoother_pc: str, distributed: bool = False) -> dict[str, str]:
+    """PETSc options (below the solver's prefix) of the level smoothers and the coarse solve.
+
+    The coarse level is factorised by MUMPS Cholesky; over several ranks every rank holds
+    the whole (small) coarse matrix and solves it alone (``PCREDUNDANT``): a distributed
+    solve of a few hundred unknowns costs its messages, not its arithmetic.
+    """
+    coarse = "mg_coarse_redundant_" if distributed else "mg_coarse_"
     return {
         "mg_levels_ksp_type": "chebyshev",
         "mg_levels_ksp_max_it": str(degree),
         "mg_levels_ksp_chebyshev_esteig": "0,0.1,0,1.1",
         "mg_levels_pc_type": smoother_pc,
         "mg_coarse_ksp_type": "preonly",
-        "mg_coarse_pc_type": "cholesky",
-        "mg_coarse_pc_factor_mat_solver_type": "mumps",
+        **({"mg_coarse_pc_type": "redundant"} if distributed else {}),
+        f"{coarse}pc_type": "cholesky",
+        f"{coarse}pc_factor_mat_solver_type": "mumps",
     }

@@ -4,8 +4,9 @@ For each scene the command ``wrinkles run SCENE --out TMP --overwrite --set outp
 [--frames N] [--set ...]`` is run in a subprocess, once with this tree and, with ``--before
 REV``, once with a detached git worktree of ``REV`` (its packages first on ``PYTHONPATH``, the
 same interpreter and venv), alternating per scene so both see the same machine load; each code
-first runs one frame of every scene, outside the table, so that the numba kernels the scene
-uses are compiled into that tree's cache before it is timed (a scene whose kernels the
+first runs one frame of every scene on every rank count, outside the table, so that the numba
+kernels the scene uses (the split solver's on ranks) are compiled into that tree's cache
+before it is timed (a scene whose kernels the
 warm-up missed pays their compilation inside its frames: 8-10 s on the default scene). From
 each run's ``summary.json`` the table reports per scene and code:
 
@@ -193,11 +194,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                            "overrides": args.overrides, "ranks": args.ranks, "rows": []}
     print(HEADER)
     try:
-        for (label, code), scene in itertools.product(codes, args.scenes):
+        for (label, code), scene, ranks in itertools.product(codes, args.scenes, args.ranks):
             warm = run_cli(code, scene_path(scene), tmp / "out", 1, args.overrides,
-                           args.timeout)  # numba compiles each scene's kernels into its cache
-            print(f"{'(warm-up)':>18} {label:>8}  one frame of {scene}: exit "
-                  f"{warm['exit']}, {warm['process_wall']:.1f} s", flush=True)
+                           args.timeout, ranks)  # numba compiles the kernels into its cache
+            print(f"{'(warm-up)':>18} {label:>8}  one frame of {scene} on {ranks} rank(s): "
+                  f"exit {warm['exit']}, {warm['process_wall']:.1f} s", flush=True)
         for scene in args.scenes:
             first: dict[str, float] = {}  # frames' wall time at the first rank count, per code
             for ranks in args.ranks:

@@ -214,7 +214,8 @@ class BlockUpperCopy:
     consecutive. Only the blocks on or above the block diagonal are kept: a product reads
     about half the bytes of the full AIJ rows (8 bytes per kept entry and one index per
     block instead of 12 bytes per entry), which is what bounds it. Values are gathered
-    from the rows' values and inserted into the fixed pattern (``MatSetValuesBlocked``).
+    from the rows' values into a buffer that lives for one call and inserted into the
+    fixed pattern (``MatSetValuesBlocked``).
 
     Args:
         comm: Communicator.
@@ -247,7 +248,6 @@ class BlockUpperCopy:
         self._ptr = np.zeros(local // bs + 1, dtype=PETSc.IntType)
         np.cumsum(np.bincount(block_row[keep], minlength=local // bs), out=self._ptr[1:])
         self._ind = bsr.indices[keep].astype(PETSc.IntType)
-        self._data = np.zeros(self._take.size, dtype=PETSc.ScalarType)
         on_diagonal = np.repeat(self._ind == block_row[keep] + start // bs, bs * bs)
         self._diagonal = np.flatnonzero(on_diagonal & np.tile(np.eye(bs, dtype=bool).ravel(),
                                                               self._ind.size))
@@ -260,10 +260,11 @@ class BlockUpperCopy:
 
         Collective (the matrix is assembled).
         """
-        self._take(values, self._data)
+        data = np.empty(self._take.size, dtype=PETSc.ScalarType)  # PETSc copies it in
+        self._take(values, data)
         if shift:
-            self._data[self._diagonal] += shift
-        self.mat.setValuesBlockedCSR(self._ptr, self._ind, self._data)
+            data[self._diagonal] += shift
+        self.mat.setValuesBlockedCSR(self._ptr, self._ind, data)
         self.mat.assemble()
 
 

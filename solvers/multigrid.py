@@ -84,7 +84,7 @@ class MultigridOptions:
         smoother_degree: Chebyshev smoothing steps per level, before and after the coarse
             correction (>= 1).
         smoother_pc: Chebyshev's preconditioner: "jacobi" (diagonal of the level operator,
-            penalty included) or "sor" (symmetric SOR on ``A_l`` alone).
+            penalty included) or "sor" (symmetric SOR on ``A_l`` alone; one rank only).
         cycle: "v" or "w" cycle.
         residual_slack: A solve is accepted when the true relative residual is at most
             ``residual_slack`` times the requested tolerance (>= 1; the recursive CG residual

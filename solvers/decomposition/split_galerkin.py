@@ -87,8 +87,8 @@ class SplitGalerkin:
         dest = owner[local_dof[rows] // 3]
         mine = dest == rank
         self._own = np.flatnonzero(mine).astype(np.int32)
-        self._send = np.flatnonzero(~mine)[np.argsort(dest[~mine], kind="stable")]
-        self._send = self._send.astype(np.int32)
+        self._send = np.flatnonzero(~mine)[np.argsort(dest[~mine], kind="stable")].astype(
+            np.int32)  # by destination rank
         self._counts = np.bincount(dest[~mine], minlength=size).astype(np.int64)
         self._recv_counts = np.empty(size, dtype=np.int64)
         comm.Alltoall(self._counts, self._recv_counts)

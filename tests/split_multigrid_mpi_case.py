@@ -4,7 +4,8 @@ A 21 x 21 plate (a 5 x 5 grid subdivided twice) held by a low-rank penalty to it
 self (:func:`shellcases.compressed_plate`), solved by the serial :class:`ShellNewtonSolver`
 with multigrid CG and by :class:`SplitNewtonSolver` with the distributed multigrid, the
 same options (fixed forcing ``--rtol``, no phase space, no fallback). Also checks one
-preconditioned operator product against the serial ``A + G^T G``. Prints one
+preconditioned operator product against the serial ``A + G^T G``, the level below the fine
+one against scipy's product and, with ``--phase-space``, ``A_Z`` against the serial one. Prints one
 ``RESULT {json}`` line on rank 0.
 """
 
@@ -74,6 +75,29 @@ def _galerkin_difference(split: SplitNewtonSolver, energy, x: np.ndarray,  # noq
     return diff / float(np.abs(ref).max())
 
 
+def _phase_difference(split: SplitNewtonSolver, serial: ShellNewtonSolver, energy,  # noqa: ANN001
+                      x: np.ndarray) -> float:
+    """``max |A_Z - A_Z,serial| / max |A_Z,serial|`` of the phase space's Galerkin matrix at x.
+
+    ``A_Z = Z^T (A + tau I + G^T G) Z`` (tau = 0.5) summed over the ranks, its columns mapped
+    from PETSc's numbering to the serial one, against the serial solver's.
+    """
+    comm, target = split.comm, np.asarray(energy.target)
+    for solver, ev in ((serial, energy.evaluate(x, order=2)),
+                       (split, split.energy.evaluate(x, order=2))):
+        solver.linear.set_state(x, target)
+        solver.linear.factorize(ev, 0.5)
+    ref_phase, phase = serial.linear.phase, split.linear.phase
+    ref = ref_phase._sum.matrix(ref_phase._base[0])  # noqa: SLF001 (the matrices under test)
+    mine = phase._sum.matrix(phase._base[0]).toarray()  # noqa: SLF001
+    held = np.full(ref.shape[0], -1, dtype=np.int64)
+    held[phase.column] = phase._held[1]  # noqa: SLF001 (serial column -> PETSc column)
+    petsc_of = np.empty_like(held)
+    comm.Allreduce(held, petsc_of, op=MPI.MAX)
+    diff = np.abs(mine[np.ix_(petsc_of, petsc_of)] - ref.toarray()).max()
+    return float(comm.allreduce(diff, op=MPI.MAX) / np.abs(ref.data).max())
+
+
 def _shift_difference(split: SplitNewtonSolver, x: np.ndarray) -> float:
     """Largest relative difference of the coarse levels shifted 0.5 -> 2 against new products.
 
@@ -122,7 +146,8 @@ def main() -> None:
         multigrid=MultigridOptions(rtol=args.rtol, forcing=args.forcing, fallback=False,
                                    phase_space=args.phase_space,
                                    eigen_estimate=args.eigen_estimate))
-    x_ref, ref = ShellNewtonSolver(energy, options, hierarchy=hier).minimize(x0)
+    serial = ShellNewtonSolver(energy, options, hierarchy=hier)
+    x_ref, ref = serial.minimize(x0)
     problem = ShellProblem(energy.topology, energy.rest, energy.params, clusters.H,
                            np.asarray(energy.target))
     split = SplitNewtonSolver(problem, clusters.partition, options, comm,
@@ -132,6 +157,7 @@ def main() -> None:
     operator_rel = _operator_difference(split, energy, x0)
     shift_rel = _shift_difference(split, x0)
     galerkin_rel = _galerkin_difference(split, energy, x0, hier.prolongations()[-1])
+    phase_rel = _phase_difference(split, serial, energy, x0) if args.phase_space else 0.0
     if comm.rank == 0:
         print("RESULT " + json.dumps({
             "ranks": comm.size, "converged": rep.converged, "iterations": rep.iterations,
@@ -141,7 +167,7 @@ def main() -> None:
             "max_diff": float(np.abs(x - x_ref).max()),
             "wrinkle": float(np.abs(x_ref[:, 2]).max()), "rank_spread": spread,
             "operator_rel": operator_rel, "shift_rel": shift_rel,
-            "galerkin_rel": galerkin_rel}))
+            "galerkin_rel": galerkin_rel, "phase_rel": phase_rel}))
 
 
 if __name__ == "__main__":

@@ -183,8 +183,7 @@ class CoarseSpace:
     :class:`solvers.decomposition.split_phase.SplitPhaseSpace`; a subclass builds ``self.z``
     (PETSc AIJ, serial or distributed) from the entries, sets its values in ``set_fields``,
     gives the rows of Z it holds (:meth:`_z_held`: a rank's own and halo vertices) and owns
-    (:meth:`_z_rows`), sums a product of its rows over the ranks (:meth:`_ranks_sum`) and
-    says how a PETSc product becomes a scipy matrix (:meth:`_csr`).
+    (:meth:`_z_rows`) and sums a product of its rows over the ranks (:meth:`_ranks_sum`).
 
     Args:
         vertices: Rest positions of the shell ``(n, 3)``.
@@ -291,10 +290,6 @@ class CoarseSpace:
                                               LinearSolverOptions(symmetric="ldlt"))
         return self._solver.factorize(self._sum.matrix(values))
 
-    def _csr(self, mat: Any) -> sp.csr_matrix:
-        """Copy a product of Z into one scipy matrix (the distributed space gathers it)."""
-        return scipy_csr(mat)
-
     def _column_sums(self, sums: np.ndarray) -> np.ndarray:
         """Column sums of the entries held here, over all of Z (serial: all are here)."""
         return sums
@@ -349,7 +344,7 @@ class CoarseSpace:
             _, gz, gtg = self._penalty
             g.matMult(self.z, result=gz)
             gz.transposeMatMult(gz, result=gtg)
-        return self._csr(self._penalty[2])
+        return scipy_csr(self._penalty[2])
 
 
 class PhaseSpace(CoarseSpace):

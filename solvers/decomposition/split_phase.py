@@ -32,18 +32,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from models.backend import MPI, PETSc
+from solvers.block_phase import TransposeBlockProduct
 from solvers.phase_space import CoarseSpace, entry_keys, union_pattern
 from solvers.shared_aij import SharedAIJ
-
-
-def _gathered(mat: Any, comm: Any) -> sp.csr_matrix:
-    """Every rank's rows of a distributed AIJ ``mat`` as one scipy CSR on every rank."""
-    indptr, indices, data = mat.getValuesCSR()
-    parts = comm.allgather((np.diff(indptr), indices, data))
-    counts = np.concatenate([p[0] for p in parts])
-    return sp.csr_matrix((np.concatenate([p[2] for p in parts]),
-                          np.concatenate([p[1] for p in parts]),
-                          np.concatenate([[0], np.cumsum(counts)])), shape=mat.getSize())
 
 
 class FixedSum:
@@ -134,9 +125,25 @@ class SplitPhaseSpace(CoarseSpace):
         self._field_values(x, target)
         self._shared.set_values(self.values[:self.counted])
 
-    def _csr(self, mat: Any) -> sp.csr_matrix:
-        """Gather a distributed product of Z to every rank as one scipy matrix."""
-        return _gathered(mat, self.comm)
+    def _penalty_part(self, g: Any) -> sp.csr_matrix:
+        """``(G Z)^T (G Z)``: every rank's rows of ``G Z`` times their transpose, summed.
+
+        ``G Z`` by PETSc's distributed product (symbolic part reused; its rows are the
+        rank's clusters, 3 x 3 blocks of clusters and hats), then ``(G Z)_r^T (G Z)_r`` over
+        blocks on a fixed pattern (:class:`solvers.block_phase.TransposeBlockProduct`) and
+        one ``MPI_Allreduce`` (:meth:`_ranks_sum`): no distributed transpose product and no
+        gather of its rows.
+        """
+        if self._penalty is None or g is not self._penalty[0]:
+            gz = g.matMult(self.z)
+            indptr, indices, values = gz.getValuesCSR()
+            rows = sp.csr_matrix((values, indices, indptr),
+                                 shape=(indptr.size - 1, gz.getSize()[1]))
+            self._penalty = (g, gz, TransposeBlockProduct(rows, rows))
+        else:
+            g.matMult(self.z, result=self._penalty[1])
+            values = self._penalty[1].getValuesCSR()[2]
+        return self._ranks_sum("penalty", self._penalty[2].product(values, values))
 
     def _z_held(self) -> sp.csr_matrix:
         """Return Z's rows of this rank's own and halo vertices (local rows, PETSc columns)."""

@@ -6,9 +6,9 @@ REV``, once with a detached git worktree of ``REV`` (its packages first on ``PYT
 same interpreter and venv), alternating per scene so both see the same machine load; each code
 first runs one frame of every scene on every rank count, outside the table, so that the numba
 kernels the scene uses (the split solver's on ranks) are compiled into that tree's cache
-before it is timed (a scene whose kernels the
-warm-up missed pays their compilation inside its frames: 8-10 s on the default scene). From
-each run's ``summary.json`` the table reports per scene and code:
+before it is timed (a scene whose kernels the warm-up missed pays their compilation inside
+its frames: 8-10 s on the default scene). From each run's ``summary.json`` the table reports
+per scene and code:
 
 * frames, body Newton iterations (``body``), shell Newton iterations, factorisations
   (numeric, shifted retries included) and the failed ones (attempts beyond one per

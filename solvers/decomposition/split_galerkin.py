@@ -89,14 +89,15 @@ class SplitGalerkin:
         self._own = np.flatnonzero(mine).astype(np.int32)
         self._send = np.flatnonzero(~mine)[np.argsort(dest[~mine], kind="stable")].astype(
             np.int32)  # by destination rank
-        self._counts = np.bincount(dest[~mine], minlength=size).astype(np.int64)
-        self._recv_counts = np.empty(size, dtype=np.int64)
-        comm.Alltoall(self._counts, self._recv_counts)
-        received = np.empty(int(self._recv_counts.sum()), dtype=np.int64)
-        comm.Alltoallv([keys[self._send], (self._counts, _displacements(self._counts)),
-                        MPI.INT64_T],
-                       [received, (self._recv_counts, _displacements(self._recv_counts)),
-                        MPI.INT64_T])
+        counts = np.bincount(dest[~mine], minlength=size).astype(np.int64)
+        recv_counts = np.empty(size, dtype=np.int64)
+        comm.Alltoall(counts, recv_counts)
+        # (counts, displacements) of the sends and the receives, fixed for every product
+        self._sent = (counts, _displacements(counts))
+        self._received = (recv_counts, _displacements(recv_counts))
+        received = np.empty(int(recv_counts.sum()), dtype=np.int64)
+        comm.Alltoallv([keys[self._send], self._sent, MPI.INT64_T],
+                       [received, self._received, MPI.INT64_T])
         unique, slot = np.unique(np.concatenate([keys[self._own], received]),
                                  return_inverse=True)
         start, local = int(offsets[rank]), int(offsets[rank + 1] - offsets[rank])
@@ -124,10 +125,8 @@ class SplitGalerkin:
             where, image = self._shift
             self._product.values[where] += tau * image
         received = np.empty(self._place_received.size)
-        self.comm.Alltoallv([self._product.values[self._send],
-                             (self._counts, _displacements(self._counts)), MPI.DOUBLE],
-                            [received, (self._recv_counts,
-                                        _displacements(self._recv_counts)), MPI.DOUBLE])
+        self.comm.Alltoallv([self._product.values[self._send], self._sent, MPI.DOUBLE],
+                            [received, self._received, MPI.DOUBLE])
         _sum_into(*self._matrix.block_values, self._place_own, self._own,
                   self._product.values, self._place_received, received)
         self._matrix.values_changed()

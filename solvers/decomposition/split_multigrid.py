@@ -261,7 +261,6 @@ class SplitMultigridSystem(KrylovBase):
         rows = np.repeat(np.arange(indptr.size - 1, dtype=np.int32), np.diff(indptr))
         if np.count_nonzero(indices == rows) != fine.local_size:  # local dof i is row i
             raise InputError("SplitMultigridSystem: the Hessian rows must contain the diagonal")
-        del rows
         local_dofs = (3 * patch.local[:, None] + np.arange(3)).reshape(-1)
         cols = fine.dof[local_dofs].astype(PETSc.IntType)[indices]
         finest = SplitGalerkin(self.comm, indptr, indices, patch.local,

@@ -20,6 +20,10 @@ per scene and code:
 * the process's total user + system CPU (``resource.getrusage`` of the child: set-up, JIT and
   output included);
 * the final shell energy and the frames whose shell solve did not converge;
+* with ``--seeds N``: each scene run N times, with ``shell.imperfection_seed`` 0 (the key not
+  passed, so earlier code runs it too) to N - 1; a wrinkle pattern is one of many nearly equal
+  minima and the seed picks it, so a change is judged against the spread over the seeds (a
+  table of mean, min and max per scene and code follows the rows);
 * with ``--ranks 1 2``: each run under ``mpiexec -n N`` (the venv's), every rank count of a
   scene side by side; the frames' wall time is then the measure (the frames' CPU is rank 0's),
   with the speed-up against the first rank count of the same code and the peak resident
@@ -36,6 +40,8 @@ Usage::
         --set shell.subdivision.levels=4 --before 17b4608
     python benchmarks/product_frames.py --scenes default ball_sofa_coarse --ranks 1 2 \\
         --set shell.solver.threads=1 --before HEAD~1
+    python benchmarks/product_frames.py --scenes default twisted_cylinder --seeds 6 \\
+        --before HEAD~1
 """
 
 from __future__ import annotations
@@ -47,6 +53,7 @@ import os
 import platform
 import resource
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -166,6 +173,51 @@ HEADER = (f"{'scene':>18} {'code':>8} {'np':>2} {'method':>9} {'thr':>3} {'frm':
           "unconverged")
 
 
+def spread_table(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Print and return mean, min and max over the seeds per scene, code and rank count.
+
+    Shell iterations and failed factorisations of all frames, the frames' CPU (wall where the
+    code does not record CPU) and the final shell energy; runs that failed are counted apart.
+    """
+    print(f"\nspread over the seeds (mean [min - max]):\n{'scene':>18} {'code':>8} {'np':>2} "
+          f"{'runs':>4} {'shell its':>18} {'failed %':>9} {'frames s':>20} {'final W':>36}")
+    table = []
+    keys = dict.fromkeys((r["scene"], r["code"], r["ranks"]) for r in rows)
+    for scene, code, ranks in keys:
+        ok = [r for r in rows if (r["scene"], r["code"], r["ranks"]) == (scene, code, ranks)
+              and r["exit"] == 0]
+        if not ok:
+            continue
+        its = [sum(r["shell_iterations"]) for r in ok]
+        failed = [100.0 * sum(r["failed_factorizations"]) / max(sum(r["factorizations"]), 1)
+                  for r in ok]
+        times = [r["frames_cpu"] if r["frames_cpu"] is not None else r["frames_wall"]
+                 for r in ok]
+        energy = [_last_energy(r["shell_energy"]) for r in ok]
+        entry = {"scene": scene, "code": code, "ranks": ranks, "runs": len(ok),
+                 "failed_runs": sum(1 for r in rows if (r["scene"], r["code"], r["ranks"])
+                                    == (scene, code, ranks) and r["exit"] != 0),
+                 "shell_iterations": _stats(its), "failed_percent": _stats(failed),
+                 "frames_time": _stats(times), "final_energy": _stats(energy)}
+        table.append(entry)
+        print(f"{scene:>18} {code:>8} {ranks:>2} {len(ok):>4} "
+              f"{_shown(entry['shell_iterations'], '.0f'):>18} "
+              f"{entry['failed_percent']['mean']:9.1f} {_shown(entry['frames_time'], '.2f'):>20} "
+              f"{_shown(entry['final_energy'], '.6g'):>36}", flush=True)
+    return table
+
+
+def _stats(values: list[float]) -> dict[str, float]:
+    """Mean, population standard deviation, min and max."""
+    return {"mean": statistics.fmean(values), "sd": statistics.pstdev(values),
+            "min": min(values), "max": max(values)}
+
+
+def _shown(stats: dict[str, float], fmt: str) -> str:
+    """``mean [min - max]``."""
+    return f"{stats['mean']:{fmt}} [{stats['min']:{fmt}} - {stats['max']:{fmt}}]"
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """Command line."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -177,6 +229,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    metavar="KEY=VALUE", help="scene override for both codes (repeatable)")
     p.add_argument("--ranks", type=int, nargs="+", default=[1],
                    help="MPI rank counts to run each scene on (mpiexec -n N for N > 1)")
+    p.add_argument("--seeds", type=int, default=1,
+                   help="runs per scene with shell.imperfection_seed 0 .. N-1 (spread table)")
     p.add_argument("--timeout", type=float, default=3600.0, help="seconds per run")
     p.add_argument("--out", type=Path, default=RESULTS)
     return p.parse_args(argv)
@@ -199,13 +253,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                            args.timeout, ranks)  # numba compiles the kernels into its cache
             print(f"{'(warm-up)':>18} {label:>8}  one frame of {scene} on {ranks} rank(s): "
                   f"exit {warm['exit']}, {warm['process_wall']:.1f} s", flush=True)
-        for scene in args.scenes:
+        for scene, seed in itertools.product(args.scenes, range(args.seeds)):
+            seeded = args.overrides + ([f"shell.imperfection_seed={seed}"] if seed else [])
             first: dict[str, float] = {}  # frames' wall time at the first rank count, per code
             for ranks in args.ranks:
                 for label, code in codes:
                     row = run_cli(code, scene_path(scene), tmp / "out", args.frames,
-                                  args.overrides, args.timeout, ranks)
-                    row.update(scene=scene, code=label, ranks=ranks)
+                                  seeded, args.timeout, ranks)
+                    row.update(scene=scene, code=label, ranks=ranks, seed=seed)
                     if row["exit"] == 0:
                         first.setdefault(label, row["frames_wall"])
                         row["speedup"] = first[label] / row["frames_wall"]
@@ -213,6 +268,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     print_row(scene, label, row)
                     args.out.parent.mkdir(parents=True, exist_ok=True)
                     args.out.write_text(json.dumps(doc, indent=1))
+        if args.seeds > 1:
+            doc["spread"] = spread_table(doc["rows"])
+            args.out.write_text(json.dumps(doc, indent=1))
     finally:
         for _label, code in codes[1:]:
             drop_worktree(code)

@@ -259,9 +259,9 @@ class ShellOptions:
     """The ``[shell]`` table of a scene: the embedded shell and its coupling.
 
     Physics (what the shell is): ``subdivision``, ``clusters``, ``energy``, ``skin``,
-    ``coupling``, ``imperfection``; solver (how it is solved): ``solver``. The resolved
-    internal options are :attr:`internals` (built when the table is read, so a bad expert key
-    is refused then).
+    ``coupling``, ``imperfection``, ``imperfection_seed``; solver (how it is solved):
+    ``solver``. The resolved internal options are :attr:`internals` (built when the table is
+    read, so a bad expert key is refused then).
 
     Attributes:
         subdivision: levels and scheme of the surface subdivision.
@@ -272,6 +272,11 @@ class ShellOptions:
         solver: the named solver choices and the expert mapping.
         imperfection: amplitude of the deterministic warm-start perturbation along the rest
             normals, as a fraction of the mean rest edge length (0 = none).
+        imperfection_seed: which realisation of that perturbation (an integer >= 0; 0 is the
+            one of earlier versions). A wrinkle pattern is one of many nearly equal minima and
+            the perturbation picks it: runs over several seeds give the spread of energies,
+            wavelengths and solver iterations of a scene (``benchmarks/product_frames.py
+            --seeds``).
 
     """
 
@@ -282,11 +287,15 @@ class ShellOptions:
     coupling: CouplingKeys = field(default_factory=CouplingKeys)
     solver: SolverKeys = field(default_factory=SolverKeys)
     imperfection: float = 1.0e-3
+    imperfection_seed: int = 0
     internals: ShellInternals = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.imperfection) and self.imperfection >= 0.0):
             raise InputError(f"shell.imperfection: must be >= 0, got {self.imperfection}")
+        if self.imperfection_seed < 0:
+            raise InputError(f"shell.imperfection_seed: must be >= 0, got "
+                             f"{self.imperfection_seed}")
         if self.skin is not None:
             for name in ("k_L", "k_A", "k_B"):
                 if getattr(self.energy, name) is not None:

@@ -48,11 +48,17 @@ def target(shell: Shell, body: Body) -> np.ndarray:
 
 
 def imperfection(shell: Shell, frame: int) -> np.ndarray:
-    """Deterministic perturbation ``eta_k`` of frame ``frame`` along the rest normals (n, 3)."""
+    """Deterministic perturbation ``eta_k`` of frame ``frame`` along the rest normals (n, 3).
+
+    ``imperfection x edge_length x xi_i n_i`` with ``xi_i`` standard normal, drawn from
+    NumPy's ``SeedSequence(frame)`` for ``imperfection_seed`` 0 and ``SeedSequence([frame,
+    seed])`` otherwise: the same on every rank and in a resumed run.
+    """
     amp = shell.options.imperfection * shell.edge_length
     if amp == 0.0:
         return np.zeros_like(shell.x)
-    rng = np.random.default_rng(frame)
+    seed = shell.options.imperfection_seed
+    rng = np.random.default_rng(frame if seed == 0 else [frame, seed])
     return amp * rng.standard_normal((shell.x.shape[0], 1)) * shell.normals
 
 

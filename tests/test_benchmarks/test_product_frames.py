@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 
-from benchmarks.product_frames import REPO, main, summary_row
+from benchmarks.product_frames import REPO, main, spread_table, summary_row
 
 TINY = ["--scenes", "default", "--frames", "1", "--set", "shell.subdivision.levels=0"]
 
@@ -45,3 +45,21 @@ def test_this_tree_and_head_run_the_same_tiny_frame(tmp_path):
     listed = subprocess.run(["git", "-C", str(REPO), "worktree", "list"], capture_output=True,
                             text=True, check=True).stdout
     assert "before-HEAD" not in listed
+
+
+def test_the_spread_table_gives_mean_min_and_max_over_the_seeds_and_counts_failed_runs():
+    def row(seed: int, its: list[int], facts: list[int], cpu: float, energy: float,
+            exit_code: int = 0) -> dict:
+        return {"scene": "default", "code": "this", "ranks": 1, "seed": seed, "exit": exit_code,
+                "shell_iterations": its, "factorizations": facts,
+                "failed_factorizations": [f - i for f, i in zip(facts, its, strict=True)],
+                "frames_cpu": cpu, "frames_wall": cpu + 1.0, "shell_energy": [0.1, energy]}
+
+    rows = [row(0, [10, 20], [15, 20], 2.0, 0.5), row(1, [30, 10], [30, 20], 4.0, 0.7),
+            row(2, [1, 1], [1, 1], 9.0, 9.0, exit_code=2)]
+    (entry,) = spread_table(rows)
+    assert (entry["runs"], entry["failed_runs"]) == (2, 1)
+    assert entry["shell_iterations"] == {"mean": 35.0, "sd": 5.0, "min": 30, "max": 40}
+    assert entry["frames_time"]["mean"] == 3.0 and entry["frames_time"]["sd"] == 1.0
+    assert entry["final_energy"]["min"] == 0.5 and entry["final_energy"]["max"] == 0.7
+    assert entry["failed_percent"]["mean"] == (100 * 5 / 35 + 100 * 10 / 50) / 2

@@ -162,3 +162,34 @@ def test_shell_checkpoint_arrays_carry_the_shift_memory(stretched):
     with pytest.raises(InputError, match="shift_state"):
         shell.solver.shift_state = np.array([np.nan, 1.0])
     shell.solver.shift_state, shell.shifts = kept, saved["shifts"]  # the module's fixture
+
+
+def test_the_imperfection_seed_picks_a_realisation_and_seed_zero_keeps_the_earlier_one(tmp_path):
+    """``shell.imperfection_seed``: 0 draws ``SeedSequence(frame)`` (the stream of earlier
+    versions, bitwise), another seed another realisation of the same amplitude along the same
+    normals, the same seed the same one."""
+    run = rigid_bar(tmp_path, 1, 1e-8)
+    shell = run.shell
+    assert shell is not None and shell.options.imperfection_seed == 0
+    amp = shell.options.imperfection * shell.edge_length
+    xi = np.random.default_rng(3).standard_normal((shell.x.shape[0], 1))
+    assert np.array_equal(imperfection(shell, 3), amp * xi * shell.normals)
+    seeded = dataclasses.replace(shell, options=dataclasses.replace(shell.options,
+                                                                     imperfection_seed=5))
+    eta, again = imperfection(seeded, 3), imperfection(seeded, 3)
+    assert np.array_equal(eta, again)
+    assert not np.allclose(eta, imperfection(shell, 3))
+    assert not np.allclose(eta, imperfection(seeded, 4))
+    # along the normals: the cross product with each normal vanishes
+    assert np.abs(np.cross(eta, shell.normals)).max() < 1e-18
+    # the same amplitude statistics: |xi| ~ N(0, 1) over ~600 vertices
+    rms = np.sqrt(np.mean(np.sum(eta**2, axis=1) / np.sum(shell.normals**2, axis=1)))
+    assert rms == pytest.approx(amp, rel=0.15)
+
+
+def test_a_negative_imperfection_seed_is_refused():
+    from meshes.errors import InputError
+    from wrinkles.shell_setup import ShellOptions
+
+    with pytest.raises(InputError, match="shell.imperfection_seed: must be >= 0"):
+        ShellOptions(imperfection_seed=-1)

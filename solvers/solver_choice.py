@@ -1,6 +1,6 @@
 """The shell Newton's linear solver and thread count when a scene leaves them to the code.
 
-Two choices, both by what the run is, not by flags:
+Three choices, all by what the run is, not by flags:
 
 * **Linear method by size and structure.** The Newton system is solved by CG with geometric
   multigrid on the subdivision hierarchy (:mod:`solvers.multigrid`) when the shell has at
@@ -8,6 +8,11 @@ Two choices, both by what the run is, not by flags:
   subdivision levels above the body's surface (the coarse solve then has 1/16 of the unknowns
   or fewer); otherwise it is factorised (sparse LDL^T, :mod:`solvers.linear`). Both bounds are
   measured on ``wrinkles run`` (docs/notes/solver-choice.md).
+* **The wrinkle-phase coarse space by size.** Multigrid-CG adds the phase space of
+  :mod:`solvers.phase_space` to its V-cycle from :data:`PHASE_SPACE_FROM_VERTICES` shell
+  vertices. It saves CG iterations at every size, but its set-up (the Galerkin matrix ``Z^T
+  A Z`` and its LDL^T at every Newton matrix and shift) costs more than they are worth on
+  the smaller shells (docs/notes/phase-space.md, measured over imperfection seeds).
 * **Threads by cores and size.** A serial run of a shell of at least
   :data:`THREADS_FROM_VERTICES` vertices uses the cores this process may run on (its CPU
   affinity, which batch systems and ``taskset`` set); a smaller shell keeps one thread (the
@@ -59,6 +64,22 @@ def choose_linear_method(method: str, vertices: int, levels: int) -> ConcreteMet
         pays = vertices >= MULTIGRID_FROM_VERTICES and levels >= MULTIGRID_FROM_LEVELS
         return "multigrid" if pays else "direct"
     return "direct" if method == "direct" else "multigrid"
+
+
+PHASE_SPACE_FROM_VERTICES: int = 8000
+"""Shell vertex count from which multigrid-CG adds the wrinkle-phase coarse space."""
+
+
+def choose_phase_space(vertices: int) -> bool:
+    """Whether multigrid-CG adds the wrinkle-phase coarse space (:mod:`solvers.phase_space`).
+
+    Returns:
+        ``vertices >= PHASE_SPACE_FROM_VERTICES``: the wrinkle scenes' frames at 10 434 and
+        41 730 shell vertices take less CPU with it, those at 2 610 to 5 218 less without it
+        (docs/notes/phase-space.md).
+
+    """
+    return vertices >= PHASE_SPACE_FROM_VERTICES
 
 
 THREADS_FROM_VERTICES: int = 20000

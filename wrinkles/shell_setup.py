@@ -56,7 +56,7 @@ from solvers.decomposition.patch_energy import ShellProblem
 from solvers.decomposition.split_newton import SplitNewtonSolver
 from solvers.multigrid import ShellHierarchy
 from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver
-from solvers.solver_choice import choose_linear_method, choose_threads
+from solvers.solver_choice import choose_linear_method, choose_phase_space, choose_threads
 from wrinkles.config import expert, flatten, to_dict, unflatten
 
 
@@ -242,16 +242,20 @@ SCENE_DEFAULTS: dict[str, Any] = {
     "newton.multigrid.level_format": "sbaij",
     "newton.multigrid.eigen_estimate": "solve",
     "newton.multigrid.fallback": False,
-    "newton.multigrid.phase_space": True,
     "newton.inertia_restart": True,
 }
 """Internal values a scene starts from where they differ from the dataclass defaults (an
 expert key may change them): the low-rank penalty, since ``H^T H`` fills in at large sizes;
 the multigrid-CG settings measured fastest on the product's frames (inexact Newton with
 Eisenstat-Walker forcing down to 1e-4, symmetric block level matrices, Chebyshev bounds once
-per solve, no direct fallback, the wrinkle-phase coarse space; the first iteration of a warm
-started direct solve restarting its shift ladder from a Lanczos estimate; docs/notes/
-solver-choice.md)."""
+per solve, no direct fallback; the first iteration of a warm started direct solve restarting
+its shift ladder from a Lanczos estimate; docs/notes/solver-choice.md). The wrinkle-phase
+coarse space is chosen by size (:data:`PHASE_SPACE_KEY`, :func:`resolve_solver`)."""
+
+PHASE_SPACE_KEY: str = "newton.multigrid.phase_space"
+"""The expert key of the multigrid's wrinkle-phase coarse space; when a scene does not set it,
+:func:`resolve_solver` sets it by the shell's size
+(:func:`solvers.solver_choice.choose_phase_space`)."""
 
 
 @dataclass(frozen=True)
@@ -326,18 +330,30 @@ class ShellOptions:
 
 
 def resolve_solver(options: ShellOptions, vertices: int, ranks: int) -> ShellOptions:
-    """Return ``options`` with ``solver.method`` and ``solver.threads`` made concrete.
+    """Return ``options`` with the solver choices made concrete for the shell's size.
 
     "auto" becomes the method for a shell of ``vertices`` vertices and its subdivision levels,
-    threads 0 the count for that size and ``ranks`` (:mod:`solvers.solver_choice`); the
-    internal options are rebuilt from them, so every later reader sees the choice.
+    threads 0 the count for that size and ``ranks``, and an unset :data:`PHASE_SPACE_KEY` the
+    phase-space choice for that size (:mod:`solvers.solver_choice`); the internal options are
+    rebuilt from them, so every later reader sees the choice. The vertex count is the whole
+    shell's, so every rank count chooses alike.
     """
+    expert_keys = options.solver.options
+    if PHASE_SPACE_KEY not in expert_keys:
+        expert_keys = {**expert_keys, PHASE_SPACE_KEY: choose_phase_space(vertices)}
     solver = dataclasses.replace(options.solver,
                                  method=choose_linear_method(options.solver.method, vertices,
                                                              options.subdivision.levels),
                                  threads=choose_threads(options.solver.threads, ranks,
-                                                        vertices))
+                                                        vertices),
+                                 options=expert_keys)
     return options if solver == options.solver else dataclasses.replace(options, solver=solver)
+
+
+def solver_facts(options: ShellOptions) -> dict[str, Any]:
+    """Return the resolved solver choices a run records and ``wrinkles check`` prints."""
+    return {"method": options.solver.method, "threads": options.solver.threads,
+            "phase_space": options.internals.newton.multigrid.phase_space}
 
 
 def mean_edge_length(x: np.ndarray, topology: ShellTopology) -> float:
@@ -511,7 +527,7 @@ def shell_report(options: ShellOptions, material: Material, vertices: np.ndarray
     n = sub.vertices.shape[0]
     return {"vertices": n, "faces": int(sub.faces.shape[0]), "mean_edge_length": a,
             "memory_estimate_gib": BYTES_PER_VERTEX[options.solver.method] * n / 2**30,
-            "solver": {"method": options.solver.method, "threads": options.solver.threads},
+            "solver": solver_facts(options),
             "k_L": params.k_L, "k_A": params.k_A, "k_B": params.k_B, "k_P": params.k_P,
             "k_F": params.k_F,
             "clusters": {"count": count, "spacing": spacing, "sigma": sigma},
@@ -608,8 +624,7 @@ def build_shell(body: Body, options: ShellOptions, material: Material,
         f"thread(s){split})")
     facts = {"vertices": int(rest.shape[0]), "faces": int(sub.faces.shape[0]),
              "coarse_surface_vertices": int(surface.vertices.shape[0]),
-             "mean_edge_length": a, "solver": {"method": options.solver.method,
-                                               "threads": options.solver.threads},
+             "mean_edge_length": a, "solver": solver_facts(options),
              "k_L": params.k_L, "k_A": params.k_A,
              "k_B": params.k_B, "k_P": params.k_P,
              "clusters": dataclasses.asdict(clusters.report),

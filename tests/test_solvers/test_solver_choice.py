@@ -9,8 +9,10 @@ from solvers import solver_choice
 from solvers.solver_choice import (
     MULTIGRID_FROM_LEVELS,
     MULTIGRID_FROM_VERTICES,
+    PHASE_SPACE_FROM_VERTICES,
     THREADS_FROM_VERTICES,
     choose_linear_method,
+    choose_phase_space,
     choose_threads,
 )
 
@@ -20,6 +22,15 @@ from solvers.solver_choice import (
     (MULTIGRID_FROM_VERTICES, "multigrid"), (2610, "multigrid"), (41730, "multigrid")])
 def test_auto_picks_the_method_by_size_on_both_sides_of_the_crossover(vertices, expected):
     assert choose_linear_method("auto", vertices, levels=2) == expected
+
+
+@pytest.mark.parametrize(("vertices", "expected"), [
+    (2610, False), (5218, False), (PHASE_SPACE_FROM_VERTICES - 1, False),
+    (PHASE_SPACE_FROM_VERTICES, True), (10434, True), (41730, True)])
+def test_the_phase_space_is_chosen_by_size_on_both_sides_of_the_crossover(vertices, expected):
+    """Measured over imperfection seeds (docs/notes/phase-space.md): the wrinkle scenes at
+    2 610 - 5 218 vertices take less CPU without it, at 10 434 and 41 730 with it."""
+    assert choose_phase_space(vertices) is expected
 
 
 @pytest.mark.parametrize(("levels", "expected"), [

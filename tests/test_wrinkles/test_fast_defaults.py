@@ -17,6 +17,7 @@ from models.embedding.clusters import wrinkle_wavelength
 from validation.measure import normal_heights, shell_wavelength
 from wrinkles.runner import Run, prepare, run_frame
 from wrinkles.scene import load_scene
+from wrinkles.shell_setup import SolverKeys
 
 DIRECT_ENERGIES: tuple[float, ...] = (0.079408, 0.227356, 0.391648, 0.577021)
 """Shell energy [J] per frame with ``shell.solver.method = "direct"`` (exact Newton, the
@@ -86,3 +87,22 @@ def test_scenes_restart_the_shift_ladder_by_default_and_the_solver_does_not():
 
     assert ShellOptions().internals.newton.inertia_restart
     assert not ShellNewtonOptions().inertia_restart
+
+
+@pytest.mark.parametrize("vertices", [2610, 41730])
+def test_the_scene_resolves_the_phase_space_by_size_unless_it_names_it(vertices):
+    """An unset ``newton.multigrid.phase_space`` is chosen by the shell's size
+    (:func:`solvers.solver_choice.choose_phase_space`) and recorded with the method and
+    threads; a value the scene writes is kept at every size."""
+    from solvers.solver_choice import choose_phase_space
+    from wrinkles.shell_setup import PHASE_SPACE_KEY, ShellOptions, resolve_solver, solver_facts
+
+    chosen = resolve_solver(ShellOptions(), vertices, ranks=1)
+    assert chosen.internals.newton.multigrid.phase_space is choose_phase_space(vertices)
+    assert solver_facts(chosen) == {"method": chosen.solver.method,
+                                    "threads": chosen.solver.threads,
+                                    "phase_space": choose_phase_space(vertices)}
+    for written in (True, False):
+        options = ShellOptions(solver=SolverKeys(options={PHASE_SPACE_KEY: written}))
+        kept = resolve_solver(options, vertices, ranks=1)
+        assert kept.internals.newton.multigrid.phase_space is written

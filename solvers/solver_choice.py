@@ -74,8 +74,8 @@ def choose_phase_space(vertices: int) -> bool:
     """Whether multigrid-CG adds the wrinkle-phase coarse space (:mod:`solvers.phase_space`).
 
     Returns:
-        ``vertices >= PHASE_SPACE_FROM_VERTICES``: the wrinkle scenes' frames at 10 434 and
-        41 730 shell vertices take less CPU with it, those at 2 610 to 5 218 less without it
+        ``vertices >= PHASE_SPACE_FROM_VERTICES``: the wrinkle scenes' frames from 10 434
+        shell vertices take less CPU with it, those up to 7 138 less without it
         (docs/notes/phase-space.md).
 
     """

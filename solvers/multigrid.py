@@ -691,6 +691,19 @@ class KrylovBase:
         self.negative_curvature = False
         self._state: tuple[np.ndarray, np.ndarray] | None = None
         self._fields_stale = True
+        self.phase_active = True
+
+    def use_phase_space(self, active: bool) -> None:
+        """Whether the phase space (when there is one) serves the coming set-ups from the start.
+
+        True (the default): every set-up adds it. False: it stays out (no test fields, no
+        ``A_Z``; CG on the multigrid alone) until a CG meets negative curvature of the Newton
+        matrix, the sign of a buckling shell, and joins from the next set-up on (:meth:`solve`).
+        The caller sets it per Newton solve (:func:`solvers.solver_choice.wrinkled_start`).
+        """
+        if active and not self.phase_active:
+            self._fields_stale = True  # the fields are built anew from the current state
+        self.phase_active = bool(active)
 
     def reset_forcing(self) -> None:
         """Start a new Newton solve: the next forcing term is ``ew_max`` (no history).
@@ -730,7 +743,8 @@ class KrylovBase:
         smoother amplify, the preconditioner indefinite) and is repeated once with them,
         unless it met negative curvature of the matrix itself (``negative_curvature``, set
         by the subclass's CG: ``p^T A p <= 0``, which no preconditioner changes); then the
-        shell Newton's next shift uses the new bounds. Bounds estimated in this Newton
+        shell Newton's next shift uses the new bounds, and an inactive phase space joins
+        (:meth:`use_phase_space`). Bounds estimated in this Newton
         iteration stay valid for its shifted retries, since a shift ``tau`` only moves the
         spectrum of ``(D + tau)^{-1} (A + tau I)`` towards 1.
         """
@@ -741,6 +755,8 @@ class KrylovBase:
                 self.renew_bounds()
                 if not self.negative_curvature:
                     x = self._accepted_cg(rhs)
+            if x is None and self.negative_curvature and self.phase is not None:
+                self.use_phase_space(True)  # buckling: the space joins (use_phase_space)
             return x if x is not None else self._failed(rhs)
         finally:
             self.stats.solves += 1
@@ -908,7 +924,7 @@ class MultigridLinearSystem(KrylovBase):
         ``_phase_ready`` says whether CG uses the correction (its matrix factorised and SPD).
         """
         self._phase_ready = False
-        if self.phase is None:
+        if self.phase is None or not self.phase_active:
             return None
         shift_only = same_matrix and not self._fields_stale
         if not shift_only:

@@ -59,6 +59,7 @@ from solvers.linear import (
     factorize_with_shift,
 )
 from solvers.multigrid import (
+    KrylovBase,
     KrylovSystem,
     MultigridLinearSystem,
     MultigridOptions,
@@ -593,6 +594,21 @@ class ShellNewtonSolver:
         if not (np.isfinite(last) and np.isfinite(first) and last >= 0.0 and first >= 0.0):
             raise InputError(f"shift_state: expected two finite shifts >= 0, got {value!r}")
         self._last_shift, self._first_shift = last, first
+
+    def use_phase_space(self, active: bool) -> None:
+        """Set whether the phase space (if any) serves the coming solve from its start.
+
+        Otherwise it joins at the solve's first negative curvature
+        (:meth:`solvers.multigrid.KrylovBase.use_phase_space`).
+        """
+        if isinstance(self.krylov, KrylovBase):
+            self.krylov.use_phase_space(active)
+
+    @property
+    def phase_space_in_use(self) -> bool:
+        """Whether the multigrid has a phase space and it serves the solves now."""
+        k = self.krylov
+        return isinstance(k, KrylovBase) and k.phase is not None and k.phase_active
 
     def _reuse_next(self) -> bool:
         """Whether the next iteration will try the previous factorisation (modified Newton)."""

@@ -12,7 +12,9 @@ Three choices, all by what the run is, not by flags:
   :mod:`solvers.phase_space` to its V-cycle from :data:`PHASE_SPACE_FROM_VERTICES` shell
   vertices. It saves CG iterations at every size, but its set-up (the Galerkin matrix ``Z^T
   A Z`` and its LDL^T at every Newton matrix and shift) costs more than they are worth on
-  the smaller shells (docs/notes/phase-space.md, measured over imperfection seeds).
+  the smaller shells (docs/notes/phase-space.md, measured over imperfection seeds). Where
+  it is added, it serves a Newton solve that starts wrinkled or buckles
+  (:func:`wrinkled_start`).
 * **Threads by cores and size.** A serial run of a shell of at least
   :data:`THREADS_FROM_VERTICES` vertices uses the cores this process may run on (its CPU
   affinity, which batch systems and ``taskset`` set); a smaller shell keeps one thread (the
@@ -80,6 +82,30 @@ def choose_phase_space(vertices: int) -> bool:
 
     """
     return vertices >= PHASE_SPACE_FROM_VERTICES
+
+
+WRINKLED_FROM_EDGES: float = 0.2
+"""Largest distance of a warm start from its target, in mean rest edge lengths, from which the
+shell counts as wrinkled (:func:`wrinkled_start`)."""
+
+
+def wrinkled_start(offset: float, edge_length: float) -> bool:
+    """Whether a Newton solve starts from a wrinkled shell: the phase space serves it at once.
+
+    The space's test fields are the wrinkles ``x - y`` and their derivatives. A solve that
+    starts at least :data:`WRINKLED_FROM_EDGES` mean edge lengths off its target somewhere
+    (a warm start carries the previous solution's wrinkles) gets the space from its first
+    set-up; any other solve gets it only if it buckles, from its first negative curvature on
+    (:meth:`solvers.multigrid.KrylovBase.use_phase_space`). A shell that barely leaves its
+    target and does not buckle (a ball-dented sofa) then does not pay for it
+    (docs/notes/phase-space.md).
+
+    Args:
+        offset: ``max_i |x_i - y_i|`` of the warm start [m].
+        edge_length: the shell's mean rest edge length [m] (> 0).
+
+    """
+    return offset >= WRINKLED_FROM_EDGES * edge_length
 
 
 THREADS_FROM_VERTICES: int = 20000

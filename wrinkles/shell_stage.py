@@ -36,6 +36,7 @@ from solvers.shell_newton import (
     ShellSolveError,
     ShellSolveReport,
 )
+from solvers.solver_choice import wrinkled_start
 from wrinkles.shell_output import Writer
 from wrinkles.shell_setup import Shell
 
@@ -99,7 +100,14 @@ def minimize_from_state(shell: Shell, solver: ShellNewtonSolver | SplitNewtonSol
 
 
 def _minimize(shell: Shell, x0: np.ndarray) -> tuple[np.ndarray, ShellSolveReport]:
-    """Minimise from the shell's state; ShellSolveError becomes a plain SolverError."""
+    """Minimise from the shell's state; ShellSolveError becomes a plain SolverError.
+
+    The multigrid's phase space (where the shell has one) serves the solve from its start when
+    the warm start lies wrinkled off its target, else from its first negative curvature
+    (:func:`solvers.solver_choice.wrinkled_start`).
+    """
+    offset = float(np.linalg.norm(x0 - shell.energy.target, axis=1).max())
+    shell.solver.use_phase_space(wrinkled_start(offset, shell.edge_length))
     try:
         return minimize_from_state(shell, shell.solver, x0, shell.options.internals.newton)
     except ShellSolveError as exc:
@@ -231,7 +239,8 @@ def shell_record(shell: Shell, report: ShellSolveReport) -> StageRecord:
             "shell_shifted_iterations": report.shifted_iterations,
             "shell_energy": ev.value, "shell_terms": dict(ev.terms),
             "shell_grad_norm": report.grad_norm, "shell_tolerance": report.tolerance,
-            "shell_start_repaired": shell.start_repaired, "wrinkle_amplitude": amplitude,
+            "shell_start_repaired": shell.start_repaired,
+            "shell_phase_space": shell.solver.phase_space_in_use, "wrinkle_amplitude": amplitude,
             "wrinkle_amplitude_rel": amplitude / shell.edge_length,
             "max_distance_to_target": total,
             "shell_time_evaluate": report.time_evaluate,

@@ -328,7 +328,7 @@ class SplitMultigridSystem(KrylovBase):
         this rank's rows of the Newton matrix (local columns), without the shift ``tau``.
         """
         self._phase_ready = False
-        if self.phase is None:
+        if self.phase is None or not self.phase_active:
             return None
         shift_only = same_matrix and not self._fields_stale
         if not shift_only:

@@ -209,3 +209,56 @@ def test_union_sum_equals_the_scipy_sum_of_its_parts() -> None:
         assert np.abs(union.matrix(values).toarray() - expected).max() < 1e-15
         assert np.array_equal(values[union.diagonal], np.diag(expected))
     assert not union.has_penalty and UnionSum({"penalty": b}).has_penalty
+
+
+def test_an_inactive_phase_space_solves_as_the_multigrid_alone_and_rejoins(wrinkled) -> None:
+    """``use_phase_space(False)``: the set-up builds no ``A_Z`` and CG takes the multigrid's
+    own iterations and solution (bitwise); active again, the space rebuilds its test fields
+    and its CG equals a fresh phase-space system's."""
+    hier, energy, x = wrinkled
+    ev = energy.evaluate(x, hessian="exact")
+    rhs = np.random.default_rng(5).standard_normal(3 * len(hier.vertices))
+
+    def system(phase: bool) -> MultigridLinearSystem:
+        mg = MultigridLinearSystem(hier.prolongations(), replace(FAST, phase_space=phase),
+                                   geometry=(hier.vertices, hier.faces))
+        mg.set_state(x, energy.target)
+        return mg
+
+    def solved(mg: MultigridLinearSystem) -> tuple[np.ndarray, int]:
+        mg.factorize(ev, 0.0)
+        return mg.solve(rhs), mg.stats.iterations[-1]
+
+    toggled = system(True)
+    toggled.use_phase_space(False)
+    off, off_its = solved(toggled)
+    assert not toggled._phase_ready and not toggled.phase_active  # SPD: CG never joins it
+    plain, plain_its = solved(system(False))
+    assert off_its == plain_its and np.array_equal(off, plain)
+    toggled.use_phase_space(True)
+    on, on_its = solved(toggled)
+    fresh, fresh_its = solved(system(True))
+    print(f"CG iterations: inactive {off_its}, multigrid alone {plain_its}, active again "
+          f"{on_its}, fresh phase space {fresh_its}")
+    assert toggled._phase_ready and on_its == fresh_its < plain_its
+    assert np.allclose(on, fresh, rtol=0, atol=1e-12 * np.abs(fresh).max())
+
+
+def test_negative_curvature_brings_an_inactive_phase_space_in() -> None:
+    """The flat compressed plate buckles: with the space inactive, the unshifted CG meets
+    negative curvature, the space joins, and the shifted set-up after it uses it."""
+    hier = ShellHierarchy.build(*grid_plate(6, 6), levels=3)
+    energy, x0 = shellcases.compressed_plate(hier.vertices, hier.faces, clusters=32)
+    ev = energy.evaluate(x0, hessian="exact")
+    mg = MultigridLinearSystem(hier.prolongations(), replace(FAST, phase_space=True),
+                               geometry=(hier.vertices, hier.faces))
+    mg.set_state(x0, energy.target)
+    mg.use_phase_space(False)
+    mg.factorize(ev, 0.0)
+    assert not mg._phase_ready and mg.stats.indefinite_skips == 0  # no A_Z built
+    assert not np.all(np.isfinite(mg.solve(-ev.grad)))
+    assert mg.negative_curvature and mg.phase_active
+    scale = float(np.mean(np.abs(ev.hess.diagonal())))
+    assert mg.factorize(ev, 10.0 * scale).usable_spd and mg._phase_ready
+    dx = mg.solve(-ev.grad)
+    assert mg.true_residual(dx, -ev.grad) < 1e-7

@@ -11,9 +11,11 @@ from solvers.solver_choice import (
     MULTIGRID_FROM_VERTICES,
     PHASE_SPACE_FROM_VERTICES,
     THREADS_FROM_VERTICES,
+    WRINKLED_FROM_EDGES,
     choose_linear_method,
     choose_phase_space,
     choose_threads,
+    wrinkled_start,
 )
 
 
@@ -31,6 +33,14 @@ def test_the_phase_space_is_chosen_by_size_on_both_sides_of_the_crossover(vertic
     """Measured over imperfection seeds (docs/notes/phase-space.md): the wrinkle scenes at
     2 610 - 5 218 vertices take less CPU without it, at 10 434 and 41 730 with it."""
     assert choose_phase_space(vertices) is expected
+
+
+@pytest.mark.parametrize(("offset", "expected"), [
+    (0.0, False), (0.99 * WRINKLED_FROM_EDGES, False), (WRINKLED_FROM_EDGES, True),
+    (3.0, True)])
+def test_a_start_counts_as_wrinkled_by_its_offset_in_edge_lengths(offset, expected):
+    for edge in (1e-3, 0.05):
+        assert wrinkled_start(offset * edge, edge) is expected
 
 
 @pytest.mark.parametrize(("levels", "expected"), [

@@ -193,3 +193,26 @@ def test_a_negative_imperfection_seed_is_refused():
 
     with pytest.raises(InputError, match="shell.imperfection_seed: must be >= 0"):
         ShellOptions(imperfection_seed=-1)
+
+
+@pytest.mark.parametrize(("pin", "expected"), [
+    ((0.004, -0.002, 0.003), [False, False, False]),   # rigid motion: never wrinkled
+    ((-0.04 * LENGTH, 0.0, 0.0), [True, True, True])])  # compressed: buckles, then wrinkled
+def test_the_phase_space_serves_wrinkled_or_buckling_solves_only(tmp_path, pin, expected):
+    """A multigrid shell with the phase space asked for (two levels): a solve gets it when its
+    warm start lies wrinkled off the target or when it buckles (``shell_phase_space`` in the
+    frame record); the bar translated rigidly never does, the compressed bar does in every
+    frame (the first from its first negative curvature, the next from their start)."""
+    shell = {"subdivision": {"levels": 2}, "skin": SKIN, "energy": {"k_P": 1.0e4},
+             "solver": {"method": "multigrid", "rtol": 1e-6,
+                        "options": {"newton.multigrid.phase_space": True}}}
+    scene = bar_scene(pin, 3, shell)
+    if pin[1] != 0.0:  # the rigid case: every node moves with the pin
+        scene["body"]["pins"][0]["velocity"] = list(pin)
+    run = run_frames(prepare(scene_from_dict(scene, Path.cwd()), tmp_path, MPI.COMM_WORLD),
+                     lambda line: None)
+    records = [r.details for r in run.records]
+    print("phase space per frame", [r["shell_phase_space"] for r in records],
+          "wrinkle amplitude / edge", [round(r["wrinkle_amplitude_rel"], 3) for r in records])
+    assert all(r["shell_converged"] for r in records)
+    assert [r["shell_phase_space"] for r in records] == expected

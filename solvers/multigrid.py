@@ -694,7 +694,7 @@ class KrylovBase:
         self.phase_active = True
 
     def use_phase_space(self, active: bool) -> None:
-        """Whether the phase space (when there is one) serves the coming set-ups from the start.
+        """Set whether the phase space (when there is one) serves the coming set-ups at once.
 
         True (the default): every set-up adds it. False: it stays out (no test fields, no
         ``A_Z``; CG on the multigrid alone) until a CG meets negative curvature of the Newton

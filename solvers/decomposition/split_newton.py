@@ -489,15 +489,13 @@ class SplitNewtonSolver:
         self.energy.patch.energy.set_target(self.energy.target[self.energy.patch.local])
 
     def use_phase_space(self, active: bool) -> None:
-        """As :meth:`solvers.shell_newton.ShellNewtonSolver.use_phase_space` (multigrid)."""
-        if isinstance(self.linear, SplitMultigridSystem):
-            self.linear.use_phase_space(active)
+        """As :meth:`ShellNewtonSolver.use_phase_space` (the distributed multigrid's space)."""
+        self.newton.use_phase_space(active)
 
     @property
     def phase_space_in_use(self) -> bool:
-        """Whether the distributed multigrid has a phase space and it serves the solves now."""
-        k = self.linear
-        return isinstance(k, SplitMultigridSystem) and k.phase is not None and k.phase_active
+        """As :attr:`ShellNewtonSolver.phase_space_in_use`."""
+        return self.newton.phase_space_in_use
 
     def minimize(self, x0: np.ndarray) -> tuple[np.ndarray, ShellSolveReport]:
         """Newton from ``x0`` (n, 3, the same on every rank); x identical on every rank."""

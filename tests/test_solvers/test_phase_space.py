@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -169,16 +170,22 @@ def test_newton_with_phase_space_reaches_the_direct_minimiser(wrinkled) -> None:
     assert reports[True].krylov_iterations < 0.8 * reports[False].krylov_iterations
 
 
+def flat_compressed_plate() -> tuple[Any, MultigridLinearSystem]:
+    """The flat compressed plate's exact-Hessian evaluation (indefinite: it buckles) and a
+    phase-space multigrid at its state."""
+    hier = ShellHierarchy.build(*grid_plate(6, 6), levels=3)
+    energy, x0 = shellcases.compressed_plate(hier.vertices, hier.faces, clusters=32)
+    mg = MultigridLinearSystem(hier.prolongations(), replace(FAST, phase_space=True),
+                               geometry=(hier.vertices, hier.faces))
+    mg.set_state(x0, energy.target)
+    return energy.evaluate(x0, hessian="exact"), mg
+
+
 def test_indefinite_phase_matrix_leaves_the_correction_out() -> None:
     """At the flat compressed start the exact Hessian is indefinite and ``Z^T A Z`` shows it:
     that matrix's CG runs on the multigrid alone (and meets the negative curvature: no
     direction); shifted far enough, the correction is back and CG converges."""
-    hier = ShellHierarchy.build(*grid_plate(6, 6), levels=3)
-    energy, x0 = shellcases.compressed_plate(hier.vertices, hier.faces, clusters=32)
-    ev = energy.evaluate(x0, hessian="exact")
-    mg = MultigridLinearSystem(hier.prolongations(), replace(FAST, phase_space=True),
-                               geometry=(hier.vertices, hier.faces))
-    mg.set_state(x0, energy.target)
+    ev, mg = flat_compressed_plate()
     report = mg.factorize(ev, 0.0)
     assert report.usable_spd and mg.stats.indefinite_skips == 1
     assert not mg._phase_ready and mg._ksp is not None  # the multigrid alone
@@ -247,12 +254,7 @@ def test_an_inactive_phase_space_solves_as_the_multigrid_alone_and_rejoins(wrink
 def test_negative_curvature_brings_an_inactive_phase_space_in() -> None:
     """The flat compressed plate buckles: with the space inactive, the unshifted CG meets
     negative curvature, the space joins, and the shifted set-up after it uses it."""
-    hier = ShellHierarchy.build(*grid_plate(6, 6), levels=3)
-    energy, x0 = shellcases.compressed_plate(hier.vertices, hier.faces, clusters=32)
-    ev = energy.evaluate(x0, hessian="exact")
-    mg = MultigridLinearSystem(hier.prolongations(), replace(FAST, phase_space=True),
-                               geometry=(hier.vertices, hier.faces))
-    mg.set_state(x0, energy.target)
+    ev, mg = flat_compressed_plate()
     mg.use_phase_space(False)
     mg.factorize(ev, 0.0)
     assert not mg._phase_ready and mg.stats.indefinite_skips == 0  # no A_Z built

@@ -184,8 +184,8 @@ def spread_table(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     table = []
     keys = dict.fromkeys((r["scene"], r["code"], r["ranks"]) for r in rows)
     for scene, code, ranks in keys:
-        ok = [r for r in rows if (r["scene"], r["code"], r["ranks"]) == (scene, code, ranks)
-              and r["exit"] == 0]
+        runs = [r for r in rows if (r["scene"], r["code"], r["ranks"]) == (scene, code, ranks)]
+        ok = [r for r in runs if r["exit"] == 0]
         if not ok:
             continue
         its = [sum(r["shell_iterations"]) for r in ok]
@@ -195,8 +195,7 @@ def spread_table(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
                  for r in ok]
         energy = [_last_energy(r["shell_energy"]) for r in ok]
         entry = {"scene": scene, "code": code, "ranks": ranks, "runs": len(ok),
-                 "failed_runs": sum(1 for r in rows if (r["scene"], r["code"], r["ranks"])
-                                    == (scene, code, ranks) and r["exit"] != 0),
+                 "failed_runs": len(runs) - len(ok),
                  "shell_iterations": _stats(its), "failed_percent": _stats(failed),
                  "frames_time": _stats(times), "final_energy": _stats(energy)}
         table.append(entry)

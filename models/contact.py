@@ -229,16 +229,16 @@ class PenaltyContact:
         traction = -self.stiffness * neg * grad_g
         return [traction[i] * self.ds for i in range(3)]
 
-    def center_stiffness_forms(self, u: Any) -> list[list[Any]]:
-        """Forms of ``K = dR/dc`` [N/m], the change of the force on the body with the centre.
+    def center_hessian(self, u: Any) -> Any:
+        """``K = d^2 e / dx^2`` of the penalty density ``e = k/2 <g>_-^2`` [Pa/m] (UFL 3 x 3).
 
         With ``n = (x - c)/d``, ``d = |x - c|`` and ``g = d - r`` (sphere only):
 
-            dR_i/dc_j = int k [ H(-g) n_i n_j + <g>_- (delta_ij - n_i n_j) / d ] dA,
+            K = k [ H(-g) n n^T + <g>_- (I - n n^T) / d ],
 
         the first term the normal penalty stiffness, the second (<= 0) the rotation of the
-        normal. The body is held fixed, so this is the contact stiffness seen by a rigid sphere
-        against a rigid surface; the compliant body makes the true ``dR/dc`` smaller.
+        normal. The density depends on ``x - c`` only, so ``K`` is also ``d^2 e / dc^2`` and
+        ``-d^2 e / dx dc``.
         """
         if self.options.obstacle != "sphere":
             raise InputError("center_stiffness_forms: only for a sphere obstacle")
@@ -246,9 +246,34 @@ class PenaltyContact:
         d = g + self.radius
         inside = ufl.conditional(ufl.lt(g, 0.0), 1.0, 0.0)
         neg = ufl.conditional(ufl.lt(g, 0.0), g, 0.0)
-        K = self.stiffness * (inside * ufl.outer(n, n)
-                              + neg / d * (ufl.Identity(3) - ufl.outer(n, n)))
+        return self.stiffness * (inside * ufl.outer(n, n)
+                                 + neg / d * (ufl.Identity(3) - ufl.outer(n, n)))
+
+    def center_stiffness_forms(self, u: Any) -> list[list[Any]]:
+        """Forms of ``K_c = dR/dc`` [N/m], the change of the force on the body with the centre.
+
+        ``dR_i/dc_j = int K_ij dA`` (:meth:`center_hessian`). The body is held fixed, so this
+        is the contact stiffness seen by a rigid sphere against a rigid surface; the compliant
+        body makes the true ``dR/dc`` smaller (:meth:`center_coupling_forms`).
+        """
+        K = self.center_hessian(u)
         return [[K[i, j] * self.ds for j in range(3)] for i in range(3)]
+
+    def center_coupling_forms(self, u: Any, w: Any) -> list[Any]:
+        """Linear forms ``G_j(w) = int (K e_j) . w dA`` [N/m] of the test function ``w``.
+
+        ``G_j`` is minus the change of the body's residual ``dPi/du`` with the centre's
+        component ``j`` (:meth:`center_hessian`), and ``dR_i/du = -G_i^T``. A body in
+        equilibrium with Jacobian ``A`` then moves by ``du/dc_j = A^{-1} G_j``, and the
+        force it feels changes by
+
+            dR/dc = K_c - G^T A^{-1} G,
+
+        the stiffness of the sphere against the compliant body (a Schur complement,
+        ``0 <= dR/dc <= K_c`` for a positive definite ``A``).
+        """
+        K = self.center_hessian(u)
+        return [ufl.dot(K[:, j], w) * self.ds for j in range(3)]
 
 
 def point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> np.ndarray:

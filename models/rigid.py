@@ -25,9 +25,12 @@ equation
     r(c) = c - c_pred - beta h^2 (g - R(c, u(c)) / m) = 0,
 
 where ``u(c)`` is the body's converged step with the sphere at ``c``, by Broyden's method
-(Broyden 1965; Degroote et al. 2009) from ``J_0 = I + beta h^2 K_rigid / m``, ``K_rigid =
-dR/dc`` at fixed body (:meth:`PenaltyContact.center_stiffness_forms`), until ``max |r| <= rtol
-* radius``.
+(Broyden 1965; Degroote et al. 2009) until ``max |r| <= rtol * radius``. It starts from the
+guess ``c_pred + beta h^2 (2 a_n - a_{n-1})`` (the acceleration extrapolated linearly in
+time) with the Jacobian ``J_0 = I + beta h^2 (K_c - G^T A^{-1} G) / m`` at the body solved
+there: ``K_c = dR/dc`` at fixed body (:meth:`PenaltyContact.center_stiffness_forms`) less the
+body's give, ``A`` its step Jacobian and ``G`` the centre coupling
+(:meth:`PenaltyContact.center_coupling_forms`), so the first update is a Newton step.
 
 Momentum bookkeeping: :class:`Ledger`.
 

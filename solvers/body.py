@@ -177,6 +177,8 @@ class Body:
         self._load_forms: list[Any] | None = None
         self._inertia_force: Any = None  # int rho a.w dX (pin_reaction, Newmark)
         self._mass_ksp: Any = None
+        self._compliance_ksp: Any = None  # obstacle_compliance
+        self._coupling_forms: dict[int, list[Any]] = {}
         self._term: QuadraticTerm | None = None
         self._solve: Callable[[EnergyNewton], NewtonResult] = EnergyNewton.solve
         self._interface: Any = None  # set_interface_force
@@ -299,6 +301,47 @@ class Body:
             raise InputError(f"reaction_force: no contact number {index} "
                              f"({len(self._reaction)} defined)")
         return np.array([global_scalar(f) for f in self._reaction[index]])
+
+    def obstacle_compliance(self, indices: list[int]) -> np.ndarray:
+        """``S = G^T A^{-1} G`` [N/m] of the sphere obstacles ``indices``, (3N, 3N) (collective).
+
+        ``A`` is the Jacobian of the step's potential (the dynamic one when the body moves)
+        at the current ``u``, with identity rows and columns at the pins; ``G`` holds the
+        columns :meth:`models.contact.PenaltyContact.center_coupling_forms` of each obstacle,
+        zero at the pins. Moving sphere ``j`` by ``dc`` moves the body in equilibrium by
+        ``A^{-1} G_j dc``, so ``K_c - S`` is the stiffness of the spheres against the
+        compliant body, ``dR/dc`` (Schur complement of ``A`` in the Hessian of body and
+        spheres together). One factorisation and ``3N`` solves.
+        """
+        solver = self._dynamic_solver or self._static_solver
+        A = solver.hessian()
+        if self._compliance_ksp is None:
+            self._compliance_ksp = PETSc.KSP().create(self.mesh.comm)
+            self._compliance_ksp.setType("preonly")
+            self._compliance_ksp.getPC().setType("lu")
+            self._compliance_ksp.getPC().setFactorSolverType(self.newton.linear_solver)
+        ksp = self._compliance_ksp
+        ksp.setOperators(A)
+        columns: list[Any] = []
+        for i in indices:
+            if i not in self._coupling_forms:
+                w = ufl.TestFunction(self.V)
+                self._coupling_forms[i] = [dolfinx.fem.form(f) for f in
+                                           self.contacts[i].center_coupling_forms(self.u, w)]
+            for form in self._coupling_forms[i]:
+                g: Any = dolfinx.fem.petsc.assemble_vector(form)
+                g.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+                rows = solver.dirichlet_rows
+                g.setValues(rows, np.zeros(rows.size))
+                g.assemble()
+                columns.append(g)
+        solved = [g.duplicate() for g in columns]
+        for g, x in zip(columns, solved, strict=True):
+            ksp.solve(g, x)
+        S = np.array([[gi.dot(xj).real for xj in solved] for gi in columns])
+        for v in (*columns, *solved):
+            v.destroy()
+        return 0.5 * (S + S.T)
 
     def set_nodal_load(self, F: Any) -> None:
         """Make the nodal force ``F`` (dolfinx Function on ``V``) a load: ``Pi -= F . u``.

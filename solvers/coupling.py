@@ -11,8 +11,10 @@
   solve is tested against.
 * Rigid balls <-> body (:class:`BallCoupling`): per body step the interface equation of the
   ball positions is solved by Broyden's method (:func:`broyden_solve`), each residual a body
-  step with the spheres moved, its Newton started from the previous residual's solution
-  (:mod:`models.rigid` has the scheme and the momentum ledger).
+  step with the spheres moved, its Newton started from the previous residual's solution, the
+  first secant the Newton Jacobian of the balls against the compliant body
+  (:meth:`BallCoupling.interface_stiffness`; :mod:`models.rigid` has the scheme, the guess
+  and the momentum ledger).
 """
 
 from __future__ import annotations
@@ -266,6 +268,7 @@ class BallCoupling:
         self.body.initial_acceleration()  # Newmark: a_0 enters the pins' initial reaction
         self.state.force = -self.reactions()
         self.state.acceleration = self.acceleration(self.state.force)
+        self.previous_acceleration = self.state.acceleration.copy()
         self.ledger = Ledger(ground_force=self.ground_force(),
                              body_momentum0=self.body_momentum(),
                              ball_momentum0=self.ball_momentum(), time0=self.body.t)
@@ -310,6 +313,18 @@ class BallCoupling:
                                                    for row in forms]
         return K
 
+    def interface_stiffness(self) -> np.ndarray:
+        """``dR/dc`` of the balls against the body in equilibrium [N/m], (3N, 3N).
+
+        ``K_c - G^T A^{-1} G`` (:meth:`stiffness` less :meth:`solvers.body.Body.
+        obstacle_compliance` at the body's current state): the compliant body gives way
+        under a moved sphere. Zero without contact (no body solve then).
+        """
+        K = self.stiffness()
+        if not np.any(K):
+            return K
+        return np.asarray(K - self.body.obstacle_compliance(self.indices))
+
     def penetration(self) -> tuple[float, ...]:
         """``max(0, r - dist(c, surface)) / r`` of each ball [-] (collective)."""
         return tuple(self._surface.penetration(self.state.center, self.radius).tolist())
@@ -349,9 +364,10 @@ class BallCoupling:
 
         def jacobian(c: np.ndarray, r: np.ndarray) -> np.ndarray:
             free = self.free.reshape(-1)
-            return np.eye(c.size) + (scale * free)[:, None] * self.stiffness() * free
+            return np.eye(c.size) + (scale * free)[:, None] * self.interface_stiffness() * free
 
-        guess = (c_pred + beta * h * h * old.acceleration).reshape(-1)
+        a_guess = 2.0 * old.acceleration - self.previous_acceleration  # linear in time
+        guess = (c_pred + beta * h * h * a_guess).reshape(-1)
         tol = self.options.coupling.rtol * float(self.radius.min())
         try:
             _, k, mismatch = broyden_solve(residual, guess, jacobian, tol,
@@ -364,6 +380,7 @@ class BallCoupling:
             raise SolverError(f"rigid coupling: ball position mismatch {mismatch:.3e} m > "
                               f"{tol:.3e} m after {k} body solves at t={body.t:.6g}")
         force = -last["R"]
+        self.previous_acceleration = old.acceleration.copy()
         self.state = advance(old, c_pred, self.acceleration(force), force, h, self.dynamics)
         self._book(old, h)
         return RigidStepInfo(k, mismatch, self.penetration(), last["report"])
@@ -406,7 +423,8 @@ class BallCoupling:
                 "contact_impulse": led.contact_impulse, "ground_impulse": led.ground_impulse,
                 "ground_force": led.ground_force, "body_momentum0": led.body_momentum0,
                 "ball_momentum0": led.ball_momentum0, "guide_impulse": led.guide_impulse,
-                "time0": np.array([led.time0])}
+                "time0": np.array([led.time0]),
+                "previous_acceleration": self.previous_acceleration}
 
     def restore(self, arrays: dict[str, np.ndarray]) -> None:
         """Set the balls' state and ledger from :meth:`arrays` (e.g. a checkpoint).
@@ -423,9 +441,12 @@ class BallCoupling:
                    for k in ("contact_impulse", "ground_impulse", "ground_force",
                              "body_momentum0", "ball_momentum0", "guide_impulse")}
             time0 = float(np.asarray(arrays["time0"]).reshape(-1)[0])
+            previous = np.array(arrays.get("previous_acceleration", state[2]),
+                                dtype=float).reshape(n, 3)
         except (KeyError, ValueError) as exc:
             raise InputError(f"checkpoint: rigid ball state unusable ({exc})") from None
         self.state = BallState(*state)
+        self.previous_acceleration = previous
         self.ledger = Ledger(**led, time0=time0)
         self.set_centers(self.state.center)
 

@@ -257,3 +257,112 @@ def test_guided_ball_moves_only_vertically_and_books_the_guide(dynamics):
     np.testing.assert_allclose(bal["body_impulse"], bal["contact_impulse"], rtol=0,
                                atol=1e-6 * scale)
     assert np.abs(bal["ground_impulse"]).max() > 0.1 * scale  # the pins held the block
+
+
+def test_interface_stiffness_is_the_derivative_of_the_reaction_of_the_body_in_equilibrium():
+    """dR/dc of a sphere against a soft block that answers it: the block's step re-solved
+    with the centre moved (R(c + e d) from a new equilibrium u(c + e d)) against
+    K_c - G^T A^{-1} G (Taylor: the remainder decays as e^2; with the rigid-surface K_c
+    alone as e, since the compliant block gives way)."""
+    from meshes.builders import box
+    from models.backend import MPI, mesh_from_arrays
+    from models.body import BodyOptions, PinSpec
+    from models.materials import Material
+    from models.rigid import RigidOptions
+    from solvers.body import Body
+    from solvers.body_newton import NewtonOptions
+
+    m = box(lx=0.4, ly=0.4, lz=0.2, h=0.1)
+    mesh = mesh_from_arrays(MPI.COMM_WORLD, m.points, m.tets)
+    ball = RigidBallOptions(radius=0.15, mass=1.0, center=(0.21, 0.19, 0.2 + 0.15 - 0.01))
+    pins = (PinSpec(point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0)),)
+    body = Body(mesh, Material(E=1e4, nu=0.3, density=100.0),
+                BodyOptions(dynamics="implicit_euler", dt=0.01, contacts=(ball.contact(),),
+                            pins=pins),
+                NewtonOptions(rtol=1e-12, atol=1e-12))
+    coupling = BallCoupling(body, RigidOptions(balls=(ball,)), 0)
+    saved = body.snapshot()
+
+    def reaction(c: np.ndarray) -> np.ndarray:
+        body.restore(saved)
+        body.set_sphere_center(c)
+        body.step()
+        return body.reaction_force(0)
+
+    c = np.array(ball.center)
+    R0 = reaction(c)
+    K_rigid, K = coupling.stiffness(), coupling.interface_stiffness()
+    assert R0[2] < -1.0
+    assert 0.0 < K[2, 2] < 0.9 * K_rigid[2, 2]  # the block gives way
+    np.testing.assert_allclose(K, K.T, rtol=0, atol=1e-9 * np.abs(K).max())
+    d = np.array([0.3, -0.2, 1.0])
+    eps = np.array([2e-3, 1e-3, 5e-4, 2.5e-4])
+    rem, rem_rigid = [], []
+    for e in eps:
+        dR = reaction(c + e * d) - R0
+        rem.append(np.linalg.norm(dR - e * K @ d))
+        rem_rigid.append(np.linalg.norm(dR - e * K_rigid @ d))
+    rate = np.polyfit(np.log(eps), np.log(rem), 1)[0]
+    rate_rigid = np.polyfit(np.log(eps), np.log(rem_rigid), 1)[0]
+    assert rate > 1.8, (rem, rate)
+    assert rate_rigid < 1.2, (rem_rigid, rate_rigid)
+
+
+def _ball_on_block(dynamics: str = "implicit_euler") -> BallCoupling:
+    """A free 2 kg ball 2 mm above a soft block pinned at its base, moving down at 1 m/s."""
+    from meshes.builders import box
+    from models.backend import MPI, mesh_from_arrays
+    from models.body import BodyOptions, PinSpec
+    from models.materials import Material
+    from models.rigid import RigidOptions
+    from solvers.body import Body
+
+    m = box(lx=0.4, ly=0.4, lz=0.2, h=0.1)
+    mesh = mesh_from_arrays(MPI.COMM_WORLD, m.points, m.tets)
+    ball = RigidBallOptions(radius=0.15, mass=2.0, center=(0.21, 0.19, 0.2 + 0.15 + 0.002),
+                            velocity=(0.0, 0.0, -1.0))
+    floor = PinSpec(point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0), tol=1e-6)
+    body = Body(mesh, Material(E=1e4, nu=0.3, density=100.0),
+                BodyOptions(dynamics=dynamics, dt=5e-3, contacts=(ball.contact(),),
+                            pins=(floor,)))
+    return BallCoupling(body, RigidOptions(balls=(ball,)), 0)
+
+
+def test_the_interface_iteration_starts_with_a_newton_step_against_the_compliant_body():
+    """Eight steps of a ball denting a soft block: with the first secant K_c - G^T A^{-1} G
+    and the extrapolated guess every step (all in contact) takes at most 3 body solves, fewer in
+    all than from the rigid-surface K_c (whose first update overshoots the soft block), to
+    the same state within the interface tolerance."""
+    runs = {}
+    for label in ("compliant", "rigid"):
+        coupling = _ball_on_block()
+        if label == "rigid":
+            coupling.interface_stiffness = coupling.stiffness  # type: ignore[method-assign]
+        solves = [coupling.step().iterations for _ in range(8)]
+        runs[label] = (solves, coupling.state.center.copy())
+    solves, center = runs["compliant"]
+    assert max(solves) <= 3 and min(solves) >= 2, solves  # in contact from the first step
+    assert sum(solves) < sum(runs["rigid"][0]), runs
+    tol = 1e-8 * 0.15
+    np.testing.assert_allclose(center, runs["rigid"][1], rtol=0, atol=10 * tol)
+
+
+def test_a_restored_ball_state_steps_as_the_uninterrupted_one():
+    """The checkpoint arrays of the balls (with the previous acceleration that the guess
+    extrapolates) restore a coupling that steps bitwise like the one that wrote them; an
+    older checkpoint without that array restarts with the guess a_n."""
+    straight = _ball_on_block()
+    for _ in range(4):
+        straight.step()
+    arrays = {k: np.array(v, copy=True) for k, v in straight.arrays().items()}
+    body_state = straight.body.snapshot()
+    straight.step()
+    resumed = _ball_on_block()
+    resumed.body.restore(body_state)
+    resumed.restore(arrays)
+    resumed.step()
+    np.testing.assert_array_equal(resumed.state.center, straight.state.center)
+    np.testing.assert_array_equal(resumed.body.u.x.array, straight.body.u.x.array)
+    old = {k: v for k, v in arrays.items() if k != "previous_acceleration"}
+    resumed.restore(old)
+    np.testing.assert_array_equal(resumed.previous_acceleration, arrays["acceleration"])

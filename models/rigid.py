@@ -25,14 +25,10 @@ equation
     r(c) = c - c_pred - beta h^2 (g - R(c, u(c)) / m) = 0,
 
 where ``u(c)`` is the body's converged step with the sphere at ``c``, by Broyden's method
-(Broyden 1965; Degroote et al. 2009) until ``max |r| <= rtol * radius``. It starts from the
-guess ``c_pred + beta h^2 (2 a_n - a_{n-1})`` (the acceleration extrapolated linearly in
-time) with the Jacobian ``J_0 = I + beta h^2 (K_c - G^T A^{-1} G) / m`` at the body solved
-there: ``K_c = dR/dc`` at fixed body (:meth:`PenaltyContact.center_stiffness_forms`) less the
-body's give, ``A`` its step Jacobian and ``G`` the centre coupling
-(:meth:`PenaltyContact.center_coupling_forms`), so the first update is a Newton step.
-
-Momentum bookkeeping: :class:`Ledger`.
+(Broyden 1965; Degroote et al. 2009) until ``max |r| <= rtol * radius``, from the guess
+``c_pred + beta h^2 (2 a_n - a_{n-1})`` with ``J_0 = I + beta h^2 (K_c - G^T A^{-1} G) / m``
+at the body solved there (a Newton step: ``K_c = dR/dc`` at fixed body less the body's give,
+:meth:`PenaltyContact.center_coupling_forms`). Momentum bookkeeping: :class:`Ledger`.
 
 A guided ball (``RigidBallOptions.guide``) is held in the guided components (a = w = 0; the
 guide's reaction ``-(m g + F)`` there is booked as ``guide``).

@@ -241,7 +241,7 @@ class PenaltyContact:
         ``-d^2 e / dx dc``.
         """
         if self.options.obstacle != "sphere":
-            raise InputError("center_stiffness_forms: only for a sphere obstacle")
+            raise InputError("contact: the centre stiffness is defined for a sphere obstacle only")
         g, n = self.gap(u)
         d = g + self.radius
         inside = ufl.conditional(ufl.lt(g, 0.0), 1.0, 0.0)

@@ -322,7 +322,7 @@ class Body:
             self._compliance_ksp.getPC().setFactorSolverType(self.newton.linear_solver)
         ksp = self._compliance_ksp
         ksp.setOperators(A)
-        columns: list[Any] = []
+        rows, columns = solver.dirichlet_rows, []
         for i in indices:
             if i not in self._coupling_forms:
                 w = ufl.TestFunction(self.V)
@@ -331,7 +331,6 @@ class Body:
             for form in self._coupling_forms[i]:
                 g: Any = dolfinx.fem.petsc.assemble_vector(form)
                 g.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-                rows = solver.dirichlet_rows
                 g.setValues(rows, np.zeros(rows.size))
                 g.assemble()
                 columns.append(g)

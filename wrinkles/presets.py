@@ -44,13 +44,13 @@ the textbook 10 / 10; docs/notes/shift-schedule.md)."""
 PRESETS: dict[str, dict[str, Any]] = {
     "preview": {
         "shell.subdivision.levels": 1,
-        "shell.solver.rtol": 1.0e-6,
+        "shell.solver.rtol": 1.0e-4,
         "shell.solver.max_iterations": 300,
         **SHIFT_SCHEDULE,
     },
     "balanced": {
         "shell.subdivision.levels": 2,
-        "shell.solver.rtol": 1.0e-6,
+        "shell.solver.rtol": 1.0e-4,
         "shell.solver.max_iterations": 300,
         **SHIFT_SCHEDULE,
     },

@@ -318,12 +318,18 @@ class BallCoupling:
 
         ``K_c - G^T A^{-1} G`` (:meth:`stiffness` less :meth:`solvers.body.Body.
         obstacle_compliance` at the body's current state): the compliant body gives way
-        under a moved sphere. Zero without contact (no body solve then).
+        under a moved sphere. Zero without contact (no body solve then). A compliance that
+        is not positive semidefinite (the body's Jacobian is not positive definite, e.g. a
+        buckling body) gives ``K_c`` itself, the stiffer secant the iteration started from
+        before.
         """
         K = self.stiffness()
         if not np.any(K):
             return K
-        return np.asarray(K - self.body.obstacle_compliance(self.indices))
+        S = self.body.obstacle_compliance(self.indices)
+        if np.linalg.eigvalsh(S).min() < -1e-12 * np.abs(S).max():
+            return K
+        return np.asarray(K - S)
 
     def penetration(self) -> tuple[float, ...]:
         """``max(0, r - dist(c, surface)) / r`` of each ball [-] (collective)."""

@@ -366,3 +366,17 @@ def test_a_restored_ball_state_steps_as_the_uninterrupted_one():
     old = {k: v for k, v in arrays.items() if k != "previous_acceleration"}
     resumed.restore(old)
     np.testing.assert_array_equal(resumed.previous_acceleration, arrays["acceleration"])
+
+
+def test_an_indefinite_compliance_falls_back_to_the_rigid_stiffness():
+    """A compliance G^T A^{-1} G that is not positive semidefinite (a body whose Jacobian is
+    not positive definite) gives the rigid K_c, the secant used before; a semidefinite one
+    is subtracted."""
+    coupling = _ball_on_block()
+    coupling.step()  # in contact
+    K = coupling.stiffness()
+    assert np.any(K)
+    spd = np.diag([1.0, 2.0, 3.0])
+    for S, expected in ((spd, K - spd), (-spd, K), (np.diag([1.0, -1e-3, 3.0]), K)):
+        coupling.body.obstacle_compliance = lambda indices, S=S: S  # type: ignore[method-assign]
+        np.testing.assert_array_equal(coupling.interface_stiffness(), expected)

@@ -50,8 +50,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np
 import scipy.sparse as sp
 
-from benchmarks.scaling import Timings, power_fit, stopwatch
 from benchmarks.shell_solve import proc_status_mib
+from benchmarks.timing import Timings, power_fit, stopwatch
 from meshes.shells import grid_plate
 from models.embedding.clusters import (
     edge_graph,

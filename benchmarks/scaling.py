@@ -62,8 +62,7 @@ import platform
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -71,6 +70,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np
 
+from benchmarks.cluster_setup import build_stages
 from benchmarks.iterative import (
     COARSE_CELLS,
     COMPRESSION,
@@ -80,6 +80,7 @@ from benchmarks.iterative import (
     compressed,
 )
 from benchmarks.shell_solve import cluster_matrix, proc_status_mib
+from benchmarks.timing import Timings, power_fit, stopwatch
 from meshes.shells import grid_plate
 from models.shell.energy import ShellEnergy, ShellParams
 from models.shell.rest import RestState
@@ -97,17 +98,6 @@ CLUSTER_RESULTS = RESULTS.with_name("setup_clusters.json")
 FRAME_COMPRESSION = (0.07, 0.075)
 SIZES: dict[str, int] = {"2.5k": 1, **LEVELS}
 CLUSTER_RATIO = 75  # vertices per cluster (as benchmarks.iterative)
-Timings = dict[str, dict[str, float]]
-
-
-@contextmanager
-def stopwatch(store: Timings, name: str) -> Iterator[None]:
-    """Record the wall and process CPU seconds of the ``with`` body as ``store[name]``."""
-    wall, cpu = time.perf_counter(), time.process_time()
-    yield
-    store[name] = {"wall": time.perf_counter() - wall, "cpu": time.process_time() - cpu}
-
-
 def size_label(levels: int, cells: int) -> str:
     """``"640k"`` for the default base grid, else ``"L<levels>x<cells>"``."""
     if cells == COARSE_CELLS:
@@ -210,8 +200,6 @@ def cluster_study(levels: int, cells: int) -> dict:
     centres, Gaussian weights by truncated Dijkstra, nearest-centre partition, smallest singular
     value of H), against the benchmark's KD-tree weights :func:`cluster_matrix`.
     """
-    from benchmarks.cluster_setup import build_stages  # imports this module: not at the top
-
     hier = ShellHierarchy.build(*grid_plate(cells, cells), levels=levels)
     v, t = hier.vertices, Timings()
     built = build_stages(v, hier.faces, t)
@@ -236,21 +224,6 @@ QUANTITIES: dict[str, Callable[[dict], float]] = {
     "setup_energy_cpu": lambda r: r["setup"]["energy"]["cpu"],
     "peak_mib": lambda r: r["peak_mib"],
 }
-
-
-def power_fit(n: np.ndarray, y: np.ndarray) -> dict[str, float | list[float]]:
-    """Least-squares ``log y = p log n + c`` with its residual and the local slopes.
-
-    Returns ``p``, ``c``, ``rms_log_residual`` = sqrt(mean r_i^2) and ``max_log_residual`` =
-    max |r_i| with ``r_i = log y_i - (p log n_i + c)`` (0 for two points: a line through
-    them), and ``local`` = the slopes ``d log y / d log n`` between consecutive sizes.
-    """
-    ln, ly = np.log(n), np.log(y)
-    p, c = np.polyfit(ln, ly, 1)
-    res = ly - (p * ln + c)
-    return {"p": float(p), "c": float(c), "rms_log_residual": float(np.sqrt(np.mean(res**2))),
-            "max_log_residual": float(np.max(np.abs(res))),
-            "local": [float(s) for s in np.diff(ly) / np.diff(ln)]}
 
 
 def exponents(rows: list[dict]) -> dict[str, dict] | None:

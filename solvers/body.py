@@ -483,13 +483,17 @@ class Body:
         self._set_pins(self.t)
         self._accel_ready = True
 
-    def step(self, guess: np.ndarray | None = None) -> StepReport:
-        """Advance by ``options.dt`` (time or load parameter), halving on failure.
+    def step(self, guess: np.ndarray | None = None, dt: float | None = None,
+             max_halvings: int | None = None) -> StepReport:
+        """Advance by ``dt`` (time or load parameter), halving on failure.
 
         Args:
             guess: Initial Newton guess of ``u`` (this rank's dof array, pins applied on top)
                 for the whole step; None: the predictor (dynamics) or ``u + h du/dt``
                 (statics). A halved sub-step always starts from its predictor.
+            dt: Step size; None: ``options.dt``.
+            max_halvings: Halvings allowed; None: ``newton.max_halvings`` (0: a caller that
+                halves the step itself, e.g. together with rigid balls).
 
         Raises:
             SolverError: The step failed ``max_halvings + 1`` times; the state before the
@@ -497,7 +501,9 @@ class Body:
 
         """
         dynamic = self.options.dynamics != "static"
-        return self._advance(self.t + self.options.dt, dynamic, guess)
+        h = self.options.dt if dt is None else dt
+        limit = self.newton.max_halvings if max_halvings is None else max_halvings
+        return self._advance(self.t + h, dynamic, guess, limit)
 
     def solve_static(self) -> StepReport:
         """Equilibrium at the current time with the current pins (no inertia); v = 0."""
@@ -509,8 +515,8 @@ class Body:
 
     # --- stepping ------------------------------------------------------------------------------
 
-    def _advance(self, t_target: float, dynamic: bool,
-                 guess: np.ndarray | None = None) -> StepReport:
+    def _advance(self, t_target: float, dynamic: bool, guess: np.ndarray | None = None,
+                 max_halvings: int | None = None) -> StepReport:
         """Reach ``t_target`` by sub-steps, halving the sub-step after each failure.
 
         ``guess`` is the first sub-step's initial guess when that sub-step is the whole step.
@@ -531,7 +537,8 @@ class Body:
                 continue
             self.restore(saved)
             halvings += 1
-            if halvings > self.newton.max_halvings or h == 0.0:
+            limit = self.newton.max_halvings if max_halvings is None else max_halvings
+            if halvings > limit or h == 0.0:
                 self.restore(start)
                 raise SolverError(self._diagnostic(result, halvings - 1, h))
             h *= 0.5

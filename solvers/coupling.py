@@ -19,6 +19,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from collections.abc import Callable, Mapping
@@ -340,12 +341,45 @@ class BallCoupling:
     def step(self) -> RigidStepInfo:
         """Advance balls and body by ``body.options.dt`` (interface iteration, module doc).
 
+        A step whose body solve fails, or whose interface iteration does not reach its
+        tolerance, is redone as two coupled half steps, at most ``newton.max_halvings``
+        deep: balls and body share every step size, so the impulses they exchange match and
+        the ledger closes (a body halving alone would step the body but not the balls). The
+        report sums the solves of the steps taken; ``halvings`` counts these halvings.
+
         Raises:
-            SolverError: the body step failed, or the interface iteration did not reach its
-                tolerance in ``max_iterations`` body solves; body state restored.
+            SolverError: the last halving failed too; balls, ledger and body restored.
 
         """
-        h, body, old = self.body.options.dt, self.body, self.state
+        return self._halving_step(self.body.options.dt, self.body.newton.max_halvings)
+
+    def _halving_step(self, h: float, budget: int) -> RigidStepInfo:
+        """One coupled step of size ``h``, else two of ``h / 2`` with ``budget - 1`` left."""
+        try:
+            return self._step(h)  # on failure the body and the spheres are restored
+        except SolverError:
+            if budget <= 0:
+                raise
+        saved = (self.body.snapshot(), self.state.copy(), self.previous_acceleration.copy(),
+                 copy.deepcopy(self.ledger))
+        try:
+            first = self._halving_step(0.5 * h, budget - 1)
+            second = self._halving_step(0.5 * h, budget - 1)
+        except SolverError:
+            body_state, self.state, self.previous_acceleration, self.ledger = saved
+            self.body.restore(body_state)
+            self.set_centers(self.state.center)
+            raise
+        a, b = first.report, second.report
+        report = dataclasses.replace(
+            b, newton_iterations=a.newton_iterations + b.newton_iterations,
+            halvings=1 + a.halvings + b.halvings, substeps=a.substeps + b.substeps)
+        return RigidStepInfo(first.iterations + second.iterations,
+                             max(first.mismatch, second.mismatch), second.penetration, report)
+
+    def _step(self, h: float) -> RigidStepInfo:
+        """One coupled step of size ``h`` (:meth:`step`), the body not halving on its own."""
+        body, old = self.body, self.state
         self.set_centers(old.center)
         body.initial_acceleration()  # Newmark a_0 with the balls where they are
         saved = body.snapshot()
@@ -358,7 +392,7 @@ class BallCoupling:
             self.set_centers(c)
             guess = body.u.x.array.copy() if "report" in last else None  # the last solve's u
             body.restore(saved)
-            report = body.step(guess)
+            report = body.step(guess, dt=h, max_halvings=0)
             if "report" in last:
                 report = dataclasses.replace(report, **{
                     k: getattr(report, k) + getattr(last["report"], k)
@@ -380,6 +414,9 @@ class BallCoupling:
                                            self.options.coupling.max_iterations)
         except np.linalg.LinAlgError:
             k, mismatch = 0, math.inf  # a singular secant Jacobian: report as not converged
+        except SolverError:  # a body solve failed (the body restored itself)
+            self.set_centers(old.center)
+            raise
         if mismatch > tol:
             body.restore(saved)
             self.set_centers(old.center)

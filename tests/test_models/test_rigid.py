@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from meshes.errors import InputError
+from meshes.errors import InputError, SolverError
 from models.contact import point_triangle_distance
 from models.rigid import (
     BallState,
@@ -308,14 +308,17 @@ def test_interface_stiffness_is_the_derivative_of_the_reaction_of_the_body_in_eq
     assert rate_rigid < 1.2, (rem_rigid, rate_rigid)
 
 
-def _ball_on_block(dynamics: str = "implicit_euler") -> BallCoupling:
-    """A free 2 kg ball 2 mm above a soft block pinned at its base, moving down at 1 m/s."""
+def _ball_on_block(dynamics: str = "implicit_euler", max_it: int = 50,
+                   max_halvings: int = 8) -> BallCoupling:
+    """A free 2 kg ball 2 mm above a soft block pinned at its base, moving down at 1 m/s
+    (body Newton capped at ``max_it`` iterations, ``max_halvings`` halvings)."""
     from meshes.builders import box
     from models.backend import MPI, mesh_from_arrays
     from models.body import BodyOptions, PinSpec
     from models.materials import Material
     from models.rigid import RigidOptions
     from solvers.body import Body
+    from solvers.body_newton import NewtonOptions
 
     m = box(lx=0.4, ly=0.4, lz=0.2, h=0.1)
     mesh = mesh_from_arrays(MPI.COMM_WORLD, m.points, m.tets)
@@ -324,7 +327,8 @@ def _ball_on_block(dynamics: str = "implicit_euler") -> BallCoupling:
     floor = PinSpec(point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0), tol=1e-6)
     body = Body(mesh, Material(E=1e4, nu=0.3, density=100.0),
                 BodyOptions(dynamics=dynamics, dt=5e-3, contacts=(ball.contact(),),
-                            pins=(floor,)))
+                            pins=(floor,)),
+                NewtonOptions(max_it=max_it, max_halvings=max_halvings))
     return BallCoupling(body, RigidOptions(balls=(ball,)), 0)
 
 
@@ -380,3 +384,41 @@ def test_an_indefinite_compliance_falls_back_to_the_rigid_stiffness():
     for S, expected in ((spd, K - spd), (-spd, K), (np.diag([1.0, -1e-3, 3.0]), K)):
         coupling.body.obstacle_compliance = lambda indices, S=S: S  # type: ignore[method-assign]
         np.testing.assert_array_equal(coupling.interface_stiffness(), expected)
+
+
+def test_a_halved_ball_step_halves_the_balls_too_and_keeps_the_ledger():
+    """Body Newton capped at 2 iterations: the coupled steps halve (balls with the body), and
+    ball + body impulse cancel to round-off as in unhalved steps (a body halving alone left
+    1.25 N s of 0.23 N s exchanged); six steps still end at t = 6 dt, near the unhalved
+    run's ball."""
+    halved, plain = _ball_on_block(max_it=2), _ball_on_block()
+    halvings = [halved.step().report.halvings for _ in range(6)]
+    for _ in range(6):
+        plain.step()
+    assert sum(halvings) >= 6, halvings
+    assert halved.body.t == pytest.approx(6 * 5e-3, rel=1e-12)
+    bal = {k: np.array(v) for k, v in halved.balance().items()}
+    scale = np.abs(bal["ball_impulse"]).max()
+    np.testing.assert_allclose(bal["ball_impulse"] + bal["body_impulse"], 0.0, rtol=0,
+                               atol=1e-9 * scale)
+    np.testing.assert_allclose(bal["body_impulse"], bal["contact_impulse"], rtol=0,
+                               atol=1e-9 * scale)
+    # implicit Euler at smaller steps: the same motion to first order in h
+    assert np.abs(halved.state.center - plain.state.center).max() < 2e-3
+
+
+def test_a_ball_step_that_fails_every_halving_restores_balls_ledger_and_body():
+    """No halving allowed and a body Newton of one iteration: the step raises, and balls,
+    ledger, time and body displacement are those before it."""
+    coupling = _ball_on_block(max_it=1, max_halvings=1)
+    before = (coupling.state.copy(), coupling.body.t, coupling.body.u.x.array.copy(),
+              {k: np.array(v, copy=True) for k, v in coupling.arrays().items()})
+    with pytest.raises(SolverError):
+        coupling.step()
+    state, t, u, arrays = before
+    np.testing.assert_array_equal(coupling.state.center, state.center)
+    np.testing.assert_array_equal(coupling.state.velocity, state.velocity)
+    assert coupling.body.t == t
+    np.testing.assert_array_equal(coupling.body.u.x.array, u)
+    for k, v in coupling.arrays().items():
+        np.testing.assert_array_equal(v, arrays[k], err_msg=k)

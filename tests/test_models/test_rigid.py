@@ -221,28 +221,38 @@ def test_center_stiffness_is_the_derivative_of_the_reaction():
     np.testing.assert_allclose(K, K.T, rtol=0, atol=1e-9 * np.abs(K).max())
 
 
-@pytest.mark.parametrize("dynamics", ["implicit_euler", "newmark"])
-def test_guided_ball_moves_only_vertically_and_books_the_guide(dynamics):
-    """An off-centre hit on a pinned block pushes the ball sideways; guided in x and y it
-    stays on its vertical, the guide's impulse is booked, and the momentum balance (contact
-    on ball = on body + supports, with the pins' reaction) holds to solver tolerance, with
-    either scheme (Newmark books h/2 (F_n + F_{n+1}))."""
+def _ball_on_block(dynamics: str = "implicit_euler",
+                   center: tuple[float, float, float] = (0.21, 0.19, 0.2 + 0.15 + 0.002),
+                   guide: tuple[int, ...] = (), **newton: int) -> BallCoupling:
+    """A 2 kg ball (r = 0.15 m; 2 mm above by default) over a soft block pinned at its base,
+    moving down at 1 m/s; ``newton``: body Newton options (e.g. ``max_it``, ``max_halvings``)."""
     from meshes.builders import box
     from models.backend import MPI, mesh_from_arrays
     from models.body import BodyOptions, PinSpec
     from models.materials import Material
     from models.rigid import RigidOptions
     from solvers.body import Body
+    from solvers.body_newton import NewtonOptions
 
     m = box(lx=0.4, ly=0.4, lz=0.2, h=0.1)
     mesh = mesh_from_arrays(MPI.COMM_WORLD, m.points, m.tets)
-    ball = RigidBallOptions(radius=0.15, mass=2.0, center=(0.33, 0.2, 0.2 + 0.15 + 0.002),
-                            velocity=(0.0, 0.0, -1.0), guide=(0, 1))
+    ball = RigidBallOptions(radius=0.15, mass=2.0, center=center, velocity=(0.0, 0.0, -1.0),
+                            guide=guide)
     floor = PinSpec(point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0), tol=1e-6)
     body = Body(mesh, Material(E=1e4, nu=0.3, density=100.0),
                 BodyOptions(dynamics=dynamics, dt=5e-3, contacts=(ball.contact(),),
-                            pins=(floor,)))
-    coupling = BallCoupling(body, RigidOptions(balls=(ball,)), 0)
+                            pins=(floor,)),
+                NewtonOptions(**newton))
+    return BallCoupling(body, RigidOptions(balls=(ball,)), 0)
+
+
+@pytest.mark.parametrize("dynamics", ["implicit_euler", "newmark"])
+def test_guided_ball_moves_only_vertically_and_books_the_guide(dynamics):
+    """An off-centre hit on a pinned block pushes the ball sideways; guided in x and y it
+    stays on its vertical, the guide's impulse is booked, and the momentum balance (contact
+    on ball = on body + supports, with the pins' reaction) holds to solver tolerance, with
+    either scheme (Newmark books h/2 (F_n + F_{n+1}))."""
+    coupling = _ball_on_block(dynamics, center=(0.33, 0.2, 0.2 + 0.15 + 0.002), guide=(0, 1))
     for _ in range(6):
         info = coupling.step()
     assert info.iterations >= 2 and coupling.state.force[0, 2] > 1.0  # in contact
@@ -306,30 +316,6 @@ def test_interface_stiffness_is_the_derivative_of_the_reaction_of_the_body_in_eq
     rate_rigid = np.polyfit(np.log(eps), np.log(rem_rigid), 1)[0]
     assert rate > 1.8, (rem, rate)
     assert rate_rigid < 1.2, (rem_rigid, rate_rigid)
-
-
-def _ball_on_block(dynamics: str = "implicit_euler", max_it: int = 50,
-                   max_halvings: int = 8) -> BallCoupling:
-    """A free 2 kg ball 2 mm above a soft block pinned at its base, moving down at 1 m/s
-    (body Newton capped at ``max_it`` iterations, ``max_halvings`` halvings)."""
-    from meshes.builders import box
-    from models.backend import MPI, mesh_from_arrays
-    from models.body import BodyOptions, PinSpec
-    from models.materials import Material
-    from models.rigid import RigidOptions
-    from solvers.body import Body
-    from solvers.body_newton import NewtonOptions
-
-    m = box(lx=0.4, ly=0.4, lz=0.2, h=0.1)
-    mesh = mesh_from_arrays(MPI.COMM_WORLD, m.points, m.tets)
-    ball = RigidBallOptions(radius=0.15, mass=2.0, center=(0.21, 0.19, 0.2 + 0.15 + 0.002),
-                            velocity=(0.0, 0.0, -1.0))
-    floor = PinSpec(point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0), tol=1e-6)
-    body = Body(mesh, Material(E=1e4, nu=0.3, density=100.0),
-                BodyOptions(dynamics=dynamics, dt=5e-3, contacts=(ball.contact(),),
-                            pins=(floor,)),
-                NewtonOptions(max_it=max_it, max_halvings=max_halvings))
-    return BallCoupling(body, RigidOptions(balls=(ball,)), 0)
 
 
 def test_the_interface_iteration_starts_with_a_newton_step_against_the_compliant_body():

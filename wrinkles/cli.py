@@ -200,7 +200,7 @@ def command_check(args: argparse.Namespace) -> int:
     if scene.shell is not None:
         surface = boundary_surface(mesh.points, mesh.tets)
         resolved["shell"] = shell_report(scene.shell, scene.material, surface.vertices,
-                                         surface.faces)
+                                         surface.faces, static=scene.body.dynamics == "static")
     print(json_text({"scene": scene_dict(scene), "resolved": resolved}), end="", flush=True)
     return 0
 

@@ -33,33 +33,22 @@ from meshes.errors import InputError
 QUALITY_KEY = "quality"
 """Top-level scene key selecting a preset."""
 
-SHIFT_SCHEDULE: dict[str, Any] = {
-    "shell.solver.options.newton.shift.growth": 5.0,
-    "shell.solver.options.newton.shift_decay": 2.0,
-    "shell.solver.options.newton.shift.max_shifts": 20,
-}
-"""The shifted-Hessian factors of every preset: growth 5, decay 2 (the solver's defaults are
-the textbook 10 / 10; docs/notes/shift-schedule.md)."""
-
 PRESETS: dict[str, dict[str, Any]] = {
     "preview": {
         "shell.subdivision.levels": 1,
         "shell.solver.rtol": 1.0e-4,
         "shell.solver.max_iterations": 300,
-        **SHIFT_SCHEDULE,
     },
     "balanced": {
         "shell.subdivision.levels": 2,
         "shell.solver.rtol": 1.0e-4,
         "shell.solver.max_iterations": 300,
-        **SHIFT_SCHEDULE,
     },
     "final": {
         "shell.subdivision.levels": 3,
         "shell.solver.rtol": 1.0e-8,
         "shell.solver.max_iterations": 500,
         "body.degree": 2,
-        **SHIFT_SCHEDULE,
     },
 }
 """Quality name -> dotted scene keys and values (the overlay)."""

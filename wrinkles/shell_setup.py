@@ -56,7 +56,12 @@ from solvers.decomposition.patch_energy import ShellProblem
 from solvers.decomposition.split_newton import SplitNewtonSolver
 from solvers.multigrid import ShellHierarchy
 from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver
-from solvers.solver_choice import choose_linear_method, choose_phase_space, choose_threads
+from solvers.solver_choice import (
+    choose_linear_method,
+    choose_phase_space,
+    choose_shift_schedule,
+    choose_threads,
+)
 from wrinkles.config import expert, flatten, to_dict, unflatten
 
 
@@ -250,7 +255,8 @@ the multigrid-CG settings measured fastest on the product's frames (inexact Newt
 Eisenstat-Walker forcing down to 1e-4, symmetric block level matrices, Chebyshev bounds once
 per solve, no direct fallback; the first iteration of a warm started direct solve restarting
 its shift ladder from a Lanczos estimate; docs/notes/solver-choice.md). The wrinkle-phase
-coarse space is chosen by size (:data:`PHASE_SPACE_KEY`, :func:`resolve_solver`)."""
+coarse space is chosen by size and the shift ladder by the load (:data:`PHASE_SPACE_KEY`,
+:func:`resolve_solver`)."""
 
 PHASE_SPACE_KEY: str = "newton.multigrid.phase_space"
 """The expert key of the multigrid's wrinkle-phase coarse space; when a scene does not set it,
@@ -329,18 +335,22 @@ class ShellOptions:
         return keys
 
 
-def resolve_solver(options: ShellOptions, vertices: int, ranks: int) -> ShellOptions:
-    """Return ``options`` with the solver choices made concrete for the shell's size.
+def resolve_solver(options: ShellOptions, vertices: int, ranks: int,
+                   static: bool = True) -> ShellOptions:
+    """Return ``options`` with the solver choices made concrete for the shell and its load.
 
     "auto" becomes the method for a shell of ``vertices`` vertices and its subdivision levels,
-    threads 0 the count for that size and ``ranks``, and an unset :data:`PHASE_SPACE_KEY` the
-    phase-space choice for that size (:mod:`solvers.solver_choice`); the internal options are
+    threads 0 the count for that size and ``ranks``, an unset :data:`PHASE_SPACE_KEY` the
+    phase-space choice for that size, and each unset key of the shift ladder the one for a
+    ``static`` load or a dynamic one (:mod:`solvers.solver_choice`); the internal options are
     rebuilt from them, so every later reader sees the choice. The vertex count is the whole
     shell's, so every rank count chooses alike.
     """
-    expert_keys = options.solver.options
-    if PHASE_SPACE_KEY not in expert_keys:
-        expert_keys = {**expert_keys, PHASE_SPACE_KEY: choose_phase_space(vertices)}
+    chosen = {PHASE_SPACE_KEY: choose_phase_space(vertices),
+              **{f"newton.{key}": value
+                 for key, value in choose_shift_schedule(static).items()}}
+    expert_keys = {**{key: value for key, value in chosen.items()
+                      if key not in options.solver.options}, **options.solver.options}
     solver = dataclasses.replace(options.solver,
                                  method=choose_linear_method(options.solver.method, vertices,
                                                              options.subdivision.levels),
@@ -352,8 +362,10 @@ def resolve_solver(options: ShellOptions, vertices: int, ranks: int) -> ShellOpt
 
 def solver_facts(options: ShellOptions) -> dict[str, Any]:
     """Return the resolved solver choices a run records and ``wrinkles check`` prints."""
+    newton = options.internals.newton
     return {"method": options.solver.method, "threads": options.solver.threads,
-            "phase_space": options.internals.newton.multigrid.phase_space}
+            "phase_space": newton.multigrid.phase_space,
+            "shifts": f"x{newton.shift.growth:g} / {newton.shift_decay:g}"}
 
 
 def mean_edge_length(x: np.ndarray, topology: ShellTopology) -> float:
@@ -510,17 +522,18 @@ def refine(options: ShellOptions, vertices: np.ndarray, faces: np.ndarray
 
 
 def shell_report(options: ShellOptions, material: Material, vertices: np.ndarray,
-                 faces: np.ndarray, ranks: int = 1) -> dict[str, Any]:
+                 faces: np.ndarray, ranks: int = 1, static: bool = True) -> dict[str, Any]:
     """Return the values a run will use for the shell over the body surface.
 
     What ``wrinkles check`` prints: the shell's size, mean edge length and memory estimate,
     the stiffnesses (from the skin when there is one), the cluster sizing, the linear method
-    and threads chosen for ``ranks`` ranks, and every internal option. Subdivides the surface
-    (after :func:`check_memory`), builds no clusters.
+    and threads chosen for ``ranks`` ranks, and every internal option (the shift ladder for a
+    ``static`` or dynamic body). Subdivides the surface (after :func:`check_memory`), builds
+    no clusters.
     """
     check_memory(options, faces.shape[0])
     sub, _, a = refine(options, vertices, faces)
-    options = resolve_solver(options, sub.vertices.shape[0], ranks)
+    options = resolve_solver(options, sub.vertices.shape[0], ranks, static)
     params = shell_params(options, a)
     count, spacing, sigma = cluster_sizing(cluster_options(options, material), sub.vertices,
                                            sub.faces)
@@ -598,7 +611,8 @@ def build_shell(body: Body, options: ShellOptions, material: Material,
     check_memory(options, surface.faces.shape[0], local.size)
     local.Free()
     sub, topology, a = refine(options, surface.vertices, surface.faces)
-    options = resolve_solver(options, sub.vertices.shape[0], body.mesh.comm.size)
+    options = resolve_solver(options, sub.vertices.shape[0], body.mesh.comm.size,
+                             static=body.options.dynamics == "static")
     log(f"shell: surface of {surface.faces.shape[0]} triangles subdivided "
         f"{options.subdivision.levels} times: {sub.vertices.shape[0]} vertices")
     emb = build_embedding(body.V, sub.vertices, options.internals.embedding)

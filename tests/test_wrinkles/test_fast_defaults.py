@@ -10,7 +10,7 @@ shell energies within the spread measured between solver paths, the frame-1 wave
 from __future__ import annotations
 
 import pytest
-from support import REPO
+from support import EXTERNAL_MESHES, REPO
 
 from models.backend import MPI
 from models.embedding.clusters import wrinkle_wavelength
@@ -91,6 +91,34 @@ def test_scenes_restart_the_shift_ladder_by_default_and_the_solver_does_not():
     assert not ShellNewtonOptions().inertia_restart
 
 
+@pytest.mark.parametrize(("name", "ladder"), [
+    ("default", (5.0, 2.0, 20)), ("bent_bar", (5.0, 2.0, 20)), ("two_way_bar", (5.0, 2.0, 20)),
+    ("ball_sofa_coarse", (10.0, 10.0, 14)), ("bunny_drop", (10.0, 10.0, 14))])
+def test_the_shift_ladder_follows_the_load_unless_an_expert_key_names_it(name, ladder):
+    """Statics get the x5 / 2 ladder, dynamics x10 / 10 (docs/notes/shift-schedule.md), with
+    no key in the scene; ``[shell.solver.options]`` keys win, each on its own; the library
+    keeps x10 / 10 whatever the load."""
+    from solvers.shell_newton import ShellNewtonOptions
+    from solvers.solver_choice import choose_shift_schedule
+    from wrinkles.shell_setup import resolve_solver
+
+    path = REPO / "scenes" / f"{name}.toml"
+    if "meshes_external" in path.read_text() and not EXTERNAL_MESHES.is_dir():
+        pytest.skip("the scene uses ../shared/meshes_external, not beside this checkout")
+    scene = load_scene(path, [])
+    assert scene.shell is not None
+    static = scene.body.dynamics == "static"
+    newton = resolve_solver(scene.shell, 5000, ranks=1, static=static).internals.newton
+    assert (newton.shift.growth, newton.shift_decay, newton.shift.max_shifts) == ladder
+    assert choose_shift_schedule(static)["shift_decay"] == ladder[1]
+    library = ShellNewtonOptions()
+    assert (library.shift.growth, library.shift_decay) == (10.0, 10.0)
+    keyed = load_scene(path, ["shell.solver.options={'newton.shift_decay' = 3.0}"])
+    assert keyed.shell is not None
+    named = resolve_solver(keyed.shell, 5000, ranks=1, static=static).internals.newton
+    assert (named.shift_decay, named.shift.growth) == (3.0, ladder[0])
+
+
 @pytest.mark.parametrize("vertices", [2610, 41730])
 def test_the_scene_resolves_the_phase_space_by_size_unless_it_names_it(vertices):
     """An unset ``newton.multigrid.phase_space`` is chosen by the shell's size
@@ -103,7 +131,8 @@ def test_the_scene_resolves_the_phase_space_by_size_unless_it_names_it(vertices)
     assert chosen.internals.newton.multigrid.phase_space is choose_phase_space(vertices)
     assert solver_facts(chosen) == {"method": chosen.solver.method,
                                     "threads": chosen.solver.threads,
-                                    "phase_space": choose_phase_space(vertices)}
+                                    "phase_space": choose_phase_space(vertices),
+                                    "shifts": "x5 / 2"}
     for written in (True, False):
         options = ShellOptions(solver=SolverKeys(options={PHASE_SPACE_KEY: written}))
         kept = resolve_solver(options, vertices, ranks=1)

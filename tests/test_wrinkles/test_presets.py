@@ -42,9 +42,7 @@ def explicit_default() -> str:
         if keys is not None:
             text = text.replace(f"{table}\n", f"{table}\n{keys}\n", 1)
     return text.replace("[shell.coupling]", "[shell.solver]\nrtol = 1e-4\nmax_iterations = 300"
-                        "\n\n[shell.solver.options]\n\"newton.shift_decay\" = 2.0\n"
-                        "\"newton.shift.growth\" = 5.0\n\"newton.shift.max_shifts\" = 20\n\n"
-                        "[shell.coupling]", 1)
+                        "\n\n[shell.coupling]", 1)
 
 
 def scene_with(tmp_path: Path, header: str, body: str | None = None) -> Path:

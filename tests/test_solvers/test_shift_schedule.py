@@ -35,7 +35,7 @@ def wrinkle_case() -> tuple[ShellEnergy, np.ndarray]:
 TENFOLD = {"shift": ShiftOptions(growth=10.0, max_shifts=14), "shift_decay": 10.0}
 """The solver's default factors: shifts growing x10, after a shifted iteration from tau / 10."""
 FIVE_TWO = {"shift": ShiftOptions(growth=5.0, max_shifts=20), "shift_decay": 2.0}
-"""The factors every scene starts from (wrinkles/shell_setup.py SCENE_DEFAULTS)."""
+"""The factors of a static scene (solvers/solver_choice.py STATIC_SHIFTS)."""
 
 
 def solve(energy: ShellEnergy, x0: np.ndarray, **options: object

@@ -118,15 +118,6 @@ START_HALVINGS: int = 40
 """Halvings of a turned-over face's offsets in :func:`admissible_start` before they are zeroed."""
 
 
-def _turned_over(energy: ShellEnergy, x: np.ndarray) -> np.ndarray:
-    """Faces (indices into the topology) whose flip barrier is +inf at ``x`` (s <= 0)."""
-    ev = energy.evaluate(x, order=0)
-    vals = ev.elements.get("flip_barrier")
-    if np.isfinite(ev.value) or vals is None:
-        return np.zeros(0, dtype=np.int64)
-    return energy.flip_faces[~np.isfinite(vals)]
-
-
 def admissible_start(energy: ShellEnergy, x0: np.ndarray, anchor: np.ndarray
                      ) -> tuple[np.ndarray, int]:
     """Return a warm start with a finite flip barrier and the number of vertices it moved.
@@ -150,7 +141,7 @@ def admissible_start(energy: ShellEnergy, x0: np.ndarray, anchor: np.ndarray
         SolverError: a face is turned over even at the anchor (degenerate target face).
 
     """
-    bad = _turned_over(energy, x0)
+    bad = energy.turned_over(x0)
     if bad.size == 0:
         return x0, 0
     x = np.array(x0, dtype=np.float64, copy=True)
@@ -159,7 +150,7 @@ def admissible_start(energy: ShellEnergy, x0: np.ndarray, anchor: np.ndarray
         verts = np.unique(faces[bad])
         factor = 0.5 if halving < START_HALVINGS else 0.0
         x[verts] = anchor[verts] + factor * (x[verts] - anchor[verts])
-        bad = _turned_over(energy, x)
+        bad = energy.turned_over(x)
         if bad.size == 0:
             return x, int(np.any(x != x0, axis=1).sum())
     raise SolverError(f"shell warm start: face {int(bad[0])} {faces[bad[0]].tolist()} is turned "

@@ -319,6 +319,22 @@ class ShellEnergy:
         """Indices of the faces the flip barrier covers (rest quality < ``flip_quality``)."""
         return self._flip.copy()
 
+    def turned_over(self, x: np.ndarray) -> np.ndarray:
+        """Faces (indices into the topology) turned over at ``x``: flip barrier ``+inf``.
+
+        A covered face whose area projected on its reference normal is not positive (``s <=
+        0``, :mod:`models.shell.barrier`); only the barrier term is evaluated. Empty without
+        the barrier.
+        """
+        term = next((t for t in self._terms if t.name == "flip_barrier"), None)
+        if term is None:
+            return np.zeros(0, dtype=np.int64)
+        ev = term.evaluate(check_positions(x, self.n_vertices), 0, self.params.hessian_mode,
+                           None, self._schedules.get(term.name))
+        if np.isfinite(ev.value) or ev.element_values is None:
+            return np.zeros(0, dtype=np.int64)
+        return self._flip[~np.isfinite(ev.element_values)]
+
     def value(self, x: np.ndarray) -> float:
         """Total energy W(x)."""
         return self.evaluate(x, order=0).value

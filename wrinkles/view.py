@@ -74,7 +74,15 @@ if shell is not None:
     lut.RescaleTransferFunction(max(values[1] * 1e-4, 1e-30), max(values[1], 1e-29))
     lut.UseLogScale = 1
     shown.SetScalarBarVisibility(view, True)
-    GetScalarBar(lut, view).DrawTickLabels = 0
+    bar = GetScalarBar(lut, view)
+    bar.DrawTickLabels = 0
+    bar.Title = "bending energy density"
+    bar.ComponentTitle = "[J/m^2]"
+    bar.HorizontalTitle = 1
+    bar.TitleFontSize = 14
+    bar.LabelFontSize = 12
+    bar.ScalarBarLength = 0.4
+    bar.WindowLocation = "Lower Right Corner"
 balls_path = os.path.join(RUN, "balls.xdmf")
 if os.path.exists(balls_path):
     balls = Xdmf3ReaderS(registrationName="balls.xdmf", FileName=[balls_path])
@@ -94,7 +102,8 @@ view.CameraPosition = {direction}
 view.CameraViewUp = {view_up}
 view.ResetCamera()
 Render()
-SaveScreenshot(os.path.join(RUN, "view.png"), view, ImageResolution=[1280, 800])
+SaveScreenshot(os.path.join(RUN, "view.png"), view, ImageResolution=[1280, 800],
+               FontScaling="Do not scale fonts")
 '''
 
 

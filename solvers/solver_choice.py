@@ -94,8 +94,8 @@ def choose_shift_schedule(static: bool) -> dict[str, float | int]:
     Returns:
         :data:`STATIC_SHIFTS` for statics, else :data:`DYNAMIC_SHIFTS`. Measured over
         imperfection seeds on ``wrinkles run`` (docs/notes/shift-schedule.md): the static
-        wrinkle bars take 0.5-0.6x the CPU at x5 / 2 than at x10 / 10; the dynamic contact
-        scenes 10-20 % more.
+        wrinkle bars take 0.5-0.6x the CPU at x5 / 2 that they take at x10 / 10; the dynamic
+        contact scenes 15-40 % more shell iterations and 5-10 % more CPU.
 
     """
     return dict(STATIC_SHIFTS if static else DYNAMIC_SHIFTS)

@@ -41,7 +41,7 @@ RESULTS = REPO / "benchmarks" / "results" / "shift_schedule.json"
 SCENES: tuple[str, ...] = ("default", "bent_bar", "twisted_cylinder", "ball_sofa_coarse")
 SCHEDULES: tuple[str, ...] = ("10/10", "5/2", "4/2", "6/2", "8/3", "3/3", "4/4", "3/1.5",
                               "2/1.5")
-"""``growth/decay`` pairs: the solver's ten-fold default, the presets' 5 / 2, IPOPT's 8 / 3
+"""``growth/decay`` pairs: the solver's ten-fold default, the static scenes' 5 / 2, IPOPT's 8 / 3
 (Waechter & Biegler 2006, kappa_w^+ and 1 / kappa_w^-) and their neighbours."""
 CEILING: float = 1e13
 """Largest shift relative to the first (``initial``): ``max_shifts`` is chosen per growth so

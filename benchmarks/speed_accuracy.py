@@ -244,7 +244,7 @@ def hessian_knobs(facts: SceneFacts) -> list[Config]:
 
 
 def shift_knobs() -> list[Config]:
-    """The solver's default ten-fold shift schedule (growth 10, decay 10) against the presets' 5 / 2
+    """The ten-fold shift schedule (growth 10, decay 10) against the static scenes' 5 / 2
     (:class:`solvers.linear.ShiftOptions`, ``benchmarks/shift_schedule.py``): the same
     tolerance, but a path of other step lengths may settle in another wrinkle branch."""
     return [Config("shift=10/10", "shift", ("shell.solver.options.newton.shift.growth=10.0",

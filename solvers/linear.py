@@ -165,7 +165,8 @@ class ShiftOptions:
     Attributes:
         initial: First shift relative to the mean absolute diagonal (dimensionless).
         growth: Factor between consecutive shifts (> 1). The textbook 10 is the default; the
-            quality presets and wrinkle scenes select 5 (docs/notes/shift-schedule.md).
+            scenes under a static load select 5 (:mod:`solvers.solver_choice`,
+            docs/notes/shift-schedule.md).
         max_shifts: Number of shifted attempts before giving up (>= 1): the largest shift is
             ``initial * growth^(max_shifts - 1)`` x the mean diagonal (1e7 with the defaults;
             20 attempts at growth 5 reach 1.9e7).

@@ -335,8 +335,8 @@ class ShellOptions:
         return keys
 
 
-def resolve_solver(options: ShellOptions, vertices: int, ranks: int,
-                   static: bool = True) -> ShellOptions:
+def resolve_solver(options: ShellOptions, vertices: int, ranks: int, *,
+                   static: bool) -> ShellOptions:
     """Return ``options`` with the solver choices made concrete for the shell and its load.
 
     "auto" becomes the method for a shell of ``vertices`` vertices and its subdivision levels,
@@ -522,7 +522,7 @@ def refine(options: ShellOptions, vertices: np.ndarray, faces: np.ndarray
 
 
 def shell_report(options: ShellOptions, material: Material, vertices: np.ndarray,
-                 faces: np.ndarray, ranks: int = 1, static: bool = True) -> dict[str, Any]:
+                 faces: np.ndarray, *, static: bool, ranks: int = 1) -> dict[str, Any]:
     """Return the values a run will use for the shell over the body surface.
 
     What ``wrinkles check`` prints: the shell's size, mean edge length and memory estimate,
@@ -533,7 +533,7 @@ def shell_report(options: ShellOptions, material: Material, vertices: np.ndarray
     """
     check_memory(options, faces.shape[0])
     sub, _, a = refine(options, vertices, faces)
-    options = resolve_solver(options, sub.vertices.shape[0], ranks, static)
+    options = resolve_solver(options, sub.vertices.shape[0], ranks, static=static)
     params = shell_params(options, a)
     count, spacing, sigma = cluster_sizing(cluster_options(options, material), sub.vertices,
                                            sub.faces)

@@ -127,7 +127,7 @@ def test_the_scene_resolves_the_phase_space_by_size_unless_it_names_it(vertices)
     from solvers.solver_choice import choose_phase_space
     from wrinkles.shell_setup import PHASE_SPACE_KEY, ShellOptions, resolve_solver, solver_facts
 
-    chosen = resolve_solver(ShellOptions(), vertices, ranks=1)
+    chosen = resolve_solver(ShellOptions(), vertices, ranks=1, static=True)
     assert chosen.internals.newton.multigrid.phase_space is choose_phase_space(vertices)
     assert solver_facts(chosen) == {"method": chosen.solver.method,
                                     "threads": chosen.solver.threads,
@@ -135,5 +135,5 @@ def test_the_scene_resolves_the_phase_space_by_size_unless_it_names_it(vertices)
                                     "shifts": "x5 / 2"}
     for written in (True, False):
         options = ShellOptions(solver=SolverKeys(options={PHASE_SPACE_KEY: written}))
-        kept = resolve_solver(options, vertices, ranks=1)
+        kept = resolve_solver(options, vertices, ranks=1, static=True)
         assert kept.internals.newton.multigrid.phase_space is written

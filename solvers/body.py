@@ -502,8 +502,7 @@ class Body:
         """
         dynamic = self.options.dynamics != "static"
         h = self.options.dt if dt is None else dt
-        limit = self.newton.max_halvings if max_halvings is None else max_halvings
-        return self._advance(self.t + h, dynamic, guess, limit)
+        return self._advance(self.t + h, dynamic, guess, max_halvings)
 
     def solve_static(self) -> StepReport:
         """Equilibrium at the current time with the current pins (no inertia); v = 0."""
@@ -519,8 +518,10 @@ class Body:
                  max_halvings: int | None = None) -> StepReport:
         """Reach ``t_target`` by sub-steps, halving the sub-step after each failure.
 
-        ``guess`` is the first sub-step's initial guess when that sub-step is the whole step.
+        ``guess`` is the first sub-step's initial guess when that sub-step is the whole step;
+        ``max_halvings`` None: ``newton.max_halvings``.
         """
+        limit = self.newton.max_halvings if max_halvings is None else max_halvings
         start = self.snapshot()
         h = max(t_target - self.t, 0.0)
         iterations, halvings, substeps = 0, 0, 0
@@ -537,7 +538,6 @@ class Body:
                 continue
             self.restore(saved)
             halvings += 1
-            limit = self.newton.max_halvings if max_halvings is None else max_halvings
             if halvings > limit or h == 0.0:
                 self.restore(start)
                 raise SolverError(self._diagnostic(result, halvings - 1, h))

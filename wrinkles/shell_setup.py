@@ -462,6 +462,16 @@ class Shell:
         if isinstance(self.solver, SplitNewtonSolver):
             self.solver.set_target(y)
 
+    def follow_hinges(self, x: np.ndarray) -> None:
+        """Follow the hinge angles to ``x`` (a solve's start) in the energy and a split solver.
+
+        :meth:`models.shell.energy.ShellEnergy.follow_hinges`: a fold closing past
+        flat-on-flat keeps a smooth bending energy.
+        """
+        self.energy.follow_hinges(x)
+        if isinstance(self.solver, SplitNewtonSolver):
+            self.solver.set_hinge_branch(self.energy.hinge_branch)
+
 
 BYTES_PER_VERTEX: dict[str, float] = {"direct": 26e3, "multigrid": 9e3}
 """Peak memory per shell vertex of a run by linear method [bytes]: from the measured peaks of

@@ -182,7 +182,8 @@ def warm_start(shell: Shell, y: np.ndarray, frame: int, perturb: bool = True,
     rigidly, or not at all): the Newton would spend its iterations removing the
     imperfection again. A start with a face turned over against the new target's normals
     is repaired (:func:`admissible_start`; ``shell.start_repaired`` counts the vertices
-    moved).
+    moved). The hinge angles are followed to the start
+    (:meth:`wrinkles.shell_setup.Shell.follow_hinges`).
     """
     x0 = shell.x + (y - shell.y)
     shell.set_target(y)
@@ -190,6 +191,7 @@ def warm_start(shell: Shell, y: np.ndarray, frame: int, perturb: bool = True,
         perturb = False
     eta = imperfection(shell, frame) if perturb else 0.0
     x0, shell.start_repaired = admissible_start(shell.energy, x0 + eta, y + eta)
+    shell.follow_hinges(x0)
     return x0
 
 
@@ -239,9 +241,11 @@ def shell_record(shell: Shell, report: ShellSolveReport) -> StageRecord:
             "shell_time_solve": report.time_solve, "shell_time_total": report.time_total}
 
 
-STATE_ARRAYS: tuple[str, ...] = ("positions", "target", "gradient_scale", "force", "shifts")
-"""Checkpoint arrays of the shell: x, y, the tolerance reference, the penalty force and the
-Newton's shift memory (absent from checkpoints written before it existed: zeros)."""
+STATE_ARRAYS: tuple[str, ...] = ("positions", "target", "gradient_scale", "force", "shifts",
+                                 "hinge_branch")
+"""Checkpoint arrays of the shell: x, y, the tolerance reference, the penalty force, the
+Newton's shift memory and the hinges' reference angles (the last two absent from checkpoints
+written before they existed: zeros, and none)."""
 
 
 def shell_arrays(shell: Shell) -> dict[str, np.ndarray]:
@@ -250,26 +254,33 @@ def shell_arrays(shell: Shell) -> dict[str, np.ndarray]:
     The warm start ``x_0 = x + (y_new - y) + eta_k`` needs ``x`` and the previous target
     ``y``; the relative Newton tolerance needs the reference ``gradient_scale``; two-way
     coupling keeps the penalty force ``force`` (its share on pinned body nodes counts in the
-    pins' reaction); the shifts of the next solve start from ``shifts``.
+    pins' reaction); the shifts of the next solve start from ``shifts``; its hinge angles
+    are followed from ``hinge_branch`` (empty before the first solve: none).
     """
+    branch = shell.energy.hinge_branch
     return {"positions": shell.x, "target": shell.y,
             "gradient_scale": np.array([shell.gradient_scale]), "force": shell.force,
-            "shifts": np.array(shell.shifts)}
+            "shifts": np.array(shell.shifts),
+            "hinge_branch": np.zeros(0) if branch is None else branch}
 
 
 def restore_shell(shell: Shell, arrays: Mapping[str, np.ndarray]) -> None:
     """Set the shell state from :func:`shell_arrays` of a checkpoint.
 
-    A checkpoint without ``shifts`` (written before the shift memory existed) restores it as
-    zeros, the steps of the code that wrote it.
+    A checkpoint without ``shifts`` or ``hinge_branch`` (written before the shift memory or
+    the hinge references existed) restores zeros and no references, the steps of the code
+    that wrote it.
 
     Raises:
         InputError: an array is missing or has another shape (another shell).
 
     """
-    arrays = {"shifts": np.zeros(2), **arrays}
+    arrays = {"shifts": np.zeros(2), "hinge_branch": np.zeros(0), **arrays}
+    hinges = shell.energy.topology.hinges.shape[0]
+    branch_shape = (0,) if np.size(arrays["hinge_branch"]) == 0 else (hinges,)
     for name in STATE_ARRAYS:
-        expected = {"gradient_scale": (1,), "shifts": (2,)}.get(name, shell.rest.shape)
+        expected = {"gradient_scale": (1,), "shifts": (2,),
+                    "hinge_branch": branch_shape}.get(name, shell.rest.shape)
         if name not in arrays or np.shape(arrays[name]) != expected:
             raise InputError(f"checkpoint: shell array {name!r} is missing or not of shape "
                              f"{expected} (another [shell] table?)")
@@ -277,6 +288,8 @@ def restore_shell(shell: Shell, arrays: Mapping[str, np.ndarray]) -> None:
     shell.force = np.array(arrays["force"])
     shell.gradient_scale = float(arrays["gradient_scale"][0])
     shell.shifts = np.array(arrays["shifts"], dtype=np.float64)
+    branch = np.array(arrays["hinge_branch"], dtype=np.float64)
+    shell.energy.set_hinge_branch(branch if branch.size else None)
 
 
 def one_way_stage(shell: Shell, body: Body, write: Writer) -> Callable[[int], StageRecord]:

@@ -42,6 +42,8 @@ from models.shell.assembly import (
 from models.shell.hinge_angle import (
     check_hinge_arrays,
     hinge_angles,
+    on_branch,
+    on_branch_one,
     theta_derivs_one,
     theta_one,
 )
@@ -84,12 +86,14 @@ def _bending_kernel(index: np.ndarray, x: np.ndarray, hinges: np.ndarray, theta0
                     weights: np.ndarray, order: int, mode: int, grad: np.ndarray,
                     blocks: np.ndarray, energies: np.ndarray, fused: bool, data: np.ndarray,
                     base: np.ndarray, row_len: np.ndarray, project: bool,
-                    q: np.ndarray) -> float:  # pragma: no cover - numba
+                    q: np.ndarray, branch: np.ndarray) -> float:  # pragma: no cover - numba
     """Fused pass over the hinges ``index``: energy, gradient scatter and 12x12 block.
 
     Mode 0 exact, 1 Gauss-Newton. With ``fused`` the block is built in a scratch array,
     PSD-projected if ``project`` (reduced clamp with basis ``q``) and added into ``data``
-    (:class:`HessianSink`) instead of stored. Returns the energy of those hinges.
+    (:class:`HessianSink`) instead of stored. ``branch`` (Hn,) or empty: each angle taken
+    on the branch nearest to its entry (:func:`on_branch`). Returns the energy of those
+    hinges.
     """
     g = np.empty(12)
     scratch3 = np.empty((1, 12, 12))
@@ -102,6 +106,8 @@ def _bending_kernel(index: np.ndarray, x: np.ndarray, hinges: np.ndarray, theta0
             theta = theta_one(x, hinges[h])
         else:
             theta = theta_derivs_one(x, hinges[h], g, hb, order >= 2 and mode == 0)
+        if branch.size:
+            theta = on_branch_one(theta, branch[h])
         d = theta - theta0[h]
         energies[h] = weights[h] * d * d
         total += energies[h]
@@ -131,9 +137,11 @@ def _fill_block(hb: np.ndarray, g: np.ndarray, two_w: float, d: float,
             hb[b, a] = v
 
 
-def _check_rest(hinges: np.ndarray, theta0: np.ndarray, weights: np.ndarray) -> None:
-    """Raise InputError naming ``theta0`` / ``weights`` when they do not match ``hinges``."""
-    for name, arr in (("theta0", theta0), ("weights", weights)):
+def _check_rest(hinges: np.ndarray, theta0: np.ndarray, weights: np.ndarray,
+                branch: np.ndarray | None = None) -> None:
+    """Raise InputError naming ``theta0`` / ``weights`` / ``branch`` not matching ``hinges``."""
+    named = [("theta0", theta0), ("weights", weights)]
+    for name, arr in named + ([("branch", branch)] if branch is not None else []):
         if arr.shape != (hinges.shape[0],) or arr.dtype != np.float64:
             raise InputError(f"{name}: expected ({hinges.shape[0]},) float64, "
                              f"got {arr.shape} {arr.dtype}")
@@ -142,7 +150,8 @@ def _check_rest(hinges: np.ndarray, theta0: np.ndarray, weights: np.ndarray) -> 
 def hinge_bending(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights: np.ndarray,
                   *, order: int = 2, hessian_mode: HessianMode = "exact",
                   sink: HessianSink | None = None,
-                  schedule: StencilSchedule | None = None) -> TermEval:
+                  schedule: StencilSchedule | None = None,
+                  branch: np.ndarray | None = None) -> TermEval:
     """Hinge bending energy ``W_B = sum_h w_h (theta_h - theta0_h)^2`` and its derivatives.
 
     One fused numba pass computes, per hinge, the angle, its exact gradient and (order 2)
@@ -162,6 +171,10 @@ def hinge_bending(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights
             assembly, :class:`models.shell.assembly.HessianSink`) and ``blocks`` is None.
         schedule: Thread split of the hinges (:mod:`models.shell.schedule`; default one
             thread, in order).
+        branch: (Hn,) reference angles [rad]: each ``theta_h`` is taken as the angle of that
+            hinge nearest to ``branch[h]`` (:func:`models.shell.hinge_angle.on_branch`), so
+            a fold followed past ``+-pi`` keeps a smooth, growing energy; None: ``theta`` in
+            ``(-pi, pi]``. The derivatives do not change.
 
     Returns:
         TermEval with ``value``, ``grad`` (3 n,), ``blocks`` (Hn, 12, 12) and
@@ -173,16 +186,17 @@ def hinge_bending(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights
     check_order(order)
     check_hessian_mode(hessian_mode)
     check_hinge_arrays(x, hinges)
-    _check_rest(hinges, theta0, weights)
+    _check_rest(hinges, theta0, weights, branch)
     grad = np.zeros(x.size if order >= 1 else 0)
     fused, data, base, row_len = HessianSink.unpacked(sink if order >= 2 else None, 4)
     blocks = np.empty((hinges.shape[0] if order >= 2 and not fused else 0, 12, 12))
     energies = np.empty(hinges.shape[0])
     xc, mode = np.ascontiguousarray(x), _MODE_CODE[hessian_mode]
+    br = np.zeros(0) if branch is None else branch
     value = (schedule or StencilSchedule.serial(hinges.shape[0])).run(
         lambda index: _bending_kernel(index, xc, hinges, theta0, weights, order, mode, grad,
                                       blocks, energies, fused, data, base, row_len,
-                                      hessian_mode == "projected", _HINGE_Q))
+                                      hessian_mode == "projected", _HINGE_Q, br))
     if not np.isfinite(value):
         if not np.all(np.isfinite(x)):
             raise InputError("x: non-finite coordinate")
@@ -195,7 +209,8 @@ def hinge_bending(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights
 
 
 def bending_energy_density(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray,
-                           weights: np.ndarray, vertex_areas: np.ndarray) -> np.ndarray:
+                           weights: np.ndarray, vertex_areas: np.ndarray,
+                           branch: np.ndarray | None = None) -> np.ndarray:
     """Per-vertex bending energy density for visualisation.
 
     ``rho_v = (sum_{h : v in edge(h)} E_h / 2) / A_v`` with ``E_h = w_h (theta_h - theta0_h)^2``
@@ -208,16 +223,18 @@ def bending_energy_density(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray
         theta0: (Hn,) rest angles.
         weights: (Hn,) hinge weights.
         vertex_areas: (n,) positive vertex areas (e.g. a third of the incident face areas).
+        branch: (Hn,) reference angles, as in :func:`hinge_bending` (None: none).
 
     Returns:
         (n,) energy per unit area at each vertex.
 
     """
     check_hinge_arrays(x, hinges)
-    _check_rest(hinges, theta0, weights)
+    _check_rest(hinges, theta0, weights, branch)
     if vertex_areas.shape != (x.shape[0],) or not np.all(vertex_areas > 0):
         raise InputError(f"vertex_areas: expected ({x.shape[0]},) positive areas")
-    e_h = weights * (hinge_angles(x, hinges) - theta0) ** 2
+    theta = hinge_angles(x, hinges)
+    e_h = weights * ((theta if branch is None else on_branch(theta, branch)) - theta0) ** 2
     per_vertex = np.bincount(hinges[:, :2].ravel(), weights=np.repeat(0.5 * e_h, 2),
                              minlength=x.shape[0])
     return per_vertex / vertex_areas

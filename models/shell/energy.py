@@ -50,6 +50,7 @@ from models.shell.barrier import (
 )
 from models.shell.bending import bending_energy_density, hinge_bending
 from models.shell.dofs import check_positions
+from models.shell.hinge_angle import hinge_angles, on_branch
 from models.shell.membrane import area_membrane, edge_membrane
 from models.shell.penalty import PenaltyOperator, penalty_factor, penalty_gram, penalty_term
 from models.shell.rest import RestState, face_quality
@@ -215,6 +216,7 @@ class ShellEnergy:
         self._flip = flip_faces(topology, rest, params.flip_quality)
         self._flip_weights = barrier_weights(rest.positions, topology.faces[self._flip])
         self._bend_weights = params.k_B * rest.hinge_weights
+        self._branch: np.ndarray | None = None
         self._terms = [term for term in self._local_terms() if term.stencils.shape[0] > 0]
         parts = vertex_parts(topology.faces, n, params.threads)
         self._schedules = {term.name: StencilSchedule.build(term.stencils, parts)
@@ -239,11 +241,53 @@ class ShellEnergy:
                 area_membrane, rest_area=r.rest_areas, stiffness=p.k_A), fused=False))
         if p.k_B > 0:
             terms.append(StencilTerm("bending", t.hinges, partial(
-                hinge_bending, theta0=r.rest_angles, weights=self._bend_weights)))
+                self._bend_kernel, theta0=r.rest_angles, weights=self._bend_weights)))
         if p.k_F > 0:
             terms.append(StencilTerm("flip_barrier", t.faces[k], partial(
                 self._flip_kernel, rest_area=r.rest_areas[k], weight=self._flip_weights)))
         return terms
+
+    def _bend_kernel(self, x: np.ndarray, hinges: np.ndarray, **kw: Any) -> TermEval:
+        """Evaluate the hinge bending on the current angle branches (:meth:`follow_hinges`)."""
+        return hinge_bending(x, hinges, branch=self._branch, **kw)
+
+    def follow_hinges(self, x: np.ndarray) -> None:
+        """Make the hinge angles at ``x``, followed from the current branches, the new ones.
+
+        Each hinge angle at ``x`` is taken on the branch nearest to its current reference
+        (:func:`models.shell.hinge_angle.on_branch`; the first call takes ``(-pi, pi]``), and
+        becomes the reference of the evaluations until the next call. Called with each
+        solve's start, it lets a fold close past flat-on-flat (``theta`` through ``+-pi``)
+        within a solve, or across frames that move a hinge by less than ``pi``, on a smooth,
+        growing ``W_B`` instead of the jump of ``(-pi, pi]``, where the shell Newton stalls
+        on the kink (``scenes/default.toml`` compressed beyond 15 %: docs/notes/hinge-branches.md).
+        While no hinge moves by ``pi`` or more from its reference, every evaluation is bit
+        for bit that without references.
+        """
+        theta = hinge_angles(check_positions(x, self.n_vertices), self.topology.hinges)
+        self._branch = theta if self._branch is None else on_branch(theta, self._branch)
+
+    @property
+    def hinge_branch(self) -> np.ndarray | None:
+        """The hinges' reference angles (Hn,) [rad] (a copy), None before any is set."""
+        return None if self._branch is None else self._branch.copy()
+
+    def set_hinge_branch(self, branch: np.ndarray | None) -> None:
+        """Set the hinges' reference angles (Hn,) [rad], e.g. from a checkpoint; None: none.
+
+        Raises:
+            InputError: ``branch`` is not (Hn,) finite floats.
+
+        """
+        if branch is None:
+            self._branch = None
+            return
+        arr = np.asarray(branch, dtype=np.float64)
+        count = self.topology.hinges.shape[0]
+        if arr.shape != (count,) or not np.all(np.isfinite(arr)):
+            raise InputError(f"hinge branch: expected ({count},) finite angles, got shape "
+                             f"{arr.shape}")
+        self._branch = arr.copy()
 
     def _flip_kernel(self, x: np.ndarray, faces: np.ndarray, *, rest_area: np.ndarray,
                      weight: np.ndarray, **kw: Any) -> TermEval:
@@ -412,7 +456,7 @@ class ShellEnergy:
             return np.zeros(self.n_vertices)
         areas = np.where(self.rest.vertex_areas > 0, self.rest.vertex_areas, 1.0)
         return bending_energy_density(xc, self.topology.hinges, self.rest.rest_angles,
-                                      self._bend_weights, areas)
+                                      self._bend_weights, areas, self._branch)
 
 
 def flip_faces(topology: ShellTopology, rest: RestState, flip_quality: float) -> np.ndarray:

@@ -32,6 +32,11 @@ Jacobians", Graph. Models 75(6)). Each face ``(p, q, r)`` with edge ``e' = x_q -
 
 Hessian: each face's contribution differentiated once more (:func:`_face_hess`).
 
+Branches: ``theta`` jumps from ``+pi`` to ``-pi`` when a fold closes past flat-on-flat (the two
+faces back to back, then through each other). A caller that follows a hinge continuously
+passes a reference angle; :func:`on_branch` then returns the angle ``theta + 2 pi k`` nearest to
+it (the same value while ``|theta - reference| < pi``), with the same derivatives.
+
 Only ``|n|^2 > 0`` and ``|e| > 0`` are needed: near-degenerate faces (height/edge ~ 1e-3 or
 smaller) give finite, accurate values; ``theta`` near +-pi is handled by ``atan2`` (the
 gradient and Hessian formulas do not involve ``theta`` at all). A truly degenerate face
@@ -39,6 +44,8 @@ gradient and Hessian formulas do not involve ``theta`` at all). A truly degenera
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -62,6 +69,23 @@ def _dot(a: tuple, b: tuple) -> float:
 def _cross(a: tuple, b: tuple) -> tuple:
     """Return ``a x b`` for 3-tuples."""
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+_TWO_PI = 2.0 * np.pi
+
+
+def on_branch(theta: Any, reference: Any) -> Any:
+    """Return ``theta + 2 pi k``, the angle of that hinge nearest to ``reference`` [rad].
+
+    ``k = floor((reference - theta) / (2 pi) + 1/2)``: 0, so ``theta`` unchanged bit for bit,
+    while ``|reference - theta| < pi``. Scalars or arrays (numpy broadcasting); compiled as
+    :func:`on_branch_one` for the kernels.
+    """
+    return theta + _TWO_PI * np.floor((reference - theta) / _TWO_PI + 0.5)
+
+
+on_branch_one = njit(cache=True, inline="always", error_model="numpy")(on_branch)
+"""Compiled :func:`on_branch` of one angle (numba kernels)."""
 
 
 @njit(cache=True, inline="always", error_model="numpy")

@@ -100,14 +100,26 @@ def slice_rest(problem: ShellProblem, local: np.ndarray, faces: np.ndarray,
     normals and the edge direction all swap together.
 
     """
-    g, r, n = problem.topology, problem.rest, problem.topology.n_vertices
-    ge = _edge_index(g.edges, n, local[topo.edges[:, 0]], local[topo.edges[:, 1]])
-    edge_to_hinge = np.full(g.n_edges, -1, dtype=np.int64)
-    edge_to_hinge[g.hinge_edge] = np.arange(g.hinge_edge.size)
-    gh = edge_to_hinge[ge[topo.hinge_edge]]
+    r = problem.rest
+    ge = global_edges(problem.topology, local, topo)
+    gh = global_hinges(problem.topology, local, topo)
     return RestState(positions=r.positions[local], rest_lengths=r.rest_lengths[ge],
                      rest_areas=r.rest_areas[faces], rest_angles=r.rest_angles[gh],
                      hinge_weights=r.hinge_weights[gh], vertex_areas=r.vertex_areas[local])
+
+
+def global_edges(topology: ShellTopology, local: np.ndarray, topo: ShellTopology) -> np.ndarray:
+    """Global index of each edge of the local topology ``topo`` (``local``: its vertices)."""
+    return _edge_index(topology.edges, topology.n_vertices, local[topo.edges[:, 0]],
+                       local[topo.edges[:, 1]])
+
+
+def global_hinges(topology: ShellTopology, local: np.ndarray, topo: ShellTopology
+                  ) -> np.ndarray:
+    """Global index of each hinge of the local topology ``topo`` (by its interior edge)."""
+    edge_to_hinge = np.full(topology.n_edges, -1, dtype=np.int64)
+    edge_to_hinge[topology.hinge_edge] = np.arange(topology.hinge_edge.size)
+    return edge_to_hinge[global_edges(topology, local, topo)[topo.hinge_edge]]
 
 
 def leading_rows(matrix: sp.csr_matrix, m: int) -> sp.csr_matrix:
@@ -138,6 +150,7 @@ class PatchEnergy:
         interior: Global ids of the owned vertices (local 0..|I|-1).
         local: Global ids of all local vertices (owned first, then the fixed halo).
         halo: Global ids of the fixed vertices the block depends on.
+        hinge_ids: Global index of each hinge of the local energy.
 
     """
 
@@ -171,7 +184,16 @@ class PatchEnergy:
         self._h_local = h_local
         energy = ShellEnergy(topo, rest, params, H=h_local)
         energy.set_target(problem.target[self.local])
+        self.hinge_ids = global_hinges(problem.topology, self.local, topo)
         return energy
+
+    def set_hinge_branch(self, branch: np.ndarray | None) -> None:
+        """Give the local hinges their entries of the global reference angles (Hn,) or None.
+
+        :meth:`models.shell.energy.ShellEnergy.set_hinge_branch`; a local hinge has the same
+        signed angle as its global one (see :func:`slice_rest`).
+        """
+        self.energy.set_hinge_branch(None if branch is None else branch[self.hinge_ids])
 
     def _is_owned(self, stencils: np.ndarray) -> np.ndarray:
         """Stencils (local ids) whose smallest global vertex is owned by this patch."""

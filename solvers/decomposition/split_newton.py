@@ -488,6 +488,14 @@ class SplitNewtonSolver:
         self.energy.target = np.array(y, dtype=np.float64)
         self.energy.patch.energy.set_target(self.energy.target[self.energy.patch.local])
 
+    def set_hinge_branch(self, branch: np.ndarray | None) -> None:
+        """Set the hinges' reference angles (global, Hn) of this rank's local energy.
+
+        As :meth:`models.shell.energy.ShellEnergy.set_hinge_branch` on the whole shell (the
+        same array on every rank).
+        """
+        self.energy.patch.set_hinge_branch(branch)
+
     def use_phase_space(self, active: bool) -> None:
         """As :meth:`ShellNewtonSolver.use_phase_space` (the distributed multigrid's space)."""
         self.newton.use_phase_space(active)

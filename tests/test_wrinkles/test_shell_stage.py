@@ -141,8 +141,9 @@ def test_compressed_bar_wrinkles(tmp_path, stretched):
 
 def test_shell_checkpoint_arrays_carry_the_shift_memory(stretched):
     """``shell_arrays`` -> ``restore_shell`` gives the shell back with the Newton's shift
-    memory; a checkpoint written before the memory existed restores it as zeros (the steps of
-    the code that wrote it); a wrong shape is refused naming the array."""
+    memory and the hinges' reference angles; a checkpoint written before either existed
+    restores zeros and no references (the steps of the code that wrote it); a wrong shape is
+    refused naming the array."""
     from meshes.errors import InputError
     from wrinkles.shell_stage import restore_shell, shell_arrays
 
@@ -156,6 +157,15 @@ def test_shell_checkpoint_arrays_carry_the_shift_memory(stretched):
     assert np.array_equal(shell.shifts, np.zeros(2))
     with pytest.raises(InputError, match="'shifts'"):
         restore_shell(shell, {**saved, "shifts": np.zeros(3)})
+    assert saved["hinge_branch"].shape == (shell.energy.topology.hinges.shape[0],)
+    shell.energy.set_hinge_branch(None)
+    restore_shell(shell, saved)
+    assert np.array_equal(shell.energy.hinge_branch, saved["hinge_branch"])
+    restore_shell(shell, {k: v for k, v in saved.items() if k != "hinge_branch"})
+    assert shell.energy.hinge_branch is None
+    with pytest.raises(InputError, match="'hinge_branch'"):
+        restore_shell(shell, {**saved, "hinge_branch": np.zeros(5)})
+    restore_shell(shell, saved)
     kept = shell.solver.shift_state
     shell.solver.shift_state = np.array([2.0, 5.0])
     assert np.array_equal(shell.solver.shift_state, [2.0, 5.0])

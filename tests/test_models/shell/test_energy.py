@@ -225,3 +225,35 @@ def test_collapsed_edges_and_faces_stay_finite() -> None:
     assert edge == pytest.approx(rest.rest_lengths[5], rel=1e-9)  # (0 - l0)^2 / l0
     area = area_membrane(x, top.faces, rest.rest_areas).element_values[far]
     assert area == pytest.approx(rest.rest_areas[far], rel=1e-9)  # (0 - A0)^2 / A0
+
+
+def test_the_energy_follows_a_closing_fold_from_solve_start_to_solve_start() -> None:
+    """``follow_hinges`` takes each hinge angle on the branch nearest to the last reference:
+    a fold closed in steps of 0.3 rad (below pi each) from a bend angle of 2.6 to 3.5 rad ends
+    on the reference 3.5 (not 3.5 - 2 pi), and W_B is ``k_B w theta^2`` there; the references
+    are checkpointable (copy out, set back; a wrong shape refused naming them)."""
+    from models.shell.hinge_angle import hinge_angles
+    from models.shell.topology import ShellTopology
+
+    def fold(theta: float) -> np.ndarray:
+        c, s = np.cos(theta / 2), np.sin(theta / 2)
+        return np.array([[0.0, 0, 0], [1, 0, 0], [0.7, c, -s], [0.3, -c, -s]])
+
+    topo = ShellTopology.from_faces(np.array([[0, 1, 2], [1, 0, 3]]), 4)
+    rest = RestState.from_positions(topo, fold(0.0))
+    energy = ShellEnergy(topo, rest, ShellParams(k_L=0.0, k_B=2.0, k_P=0.0, k_F=0.0))
+    assert energy.hinge_branch is None
+    for theta in (2.6, 2.9, 3.2, 3.5):
+        energy.follow_hinges(fold(theta))
+    branch = energy.hinge_branch
+    assert branch is not None
+    assert branch[0] == pytest.approx(3.5, abs=1e-12)
+    assert hinge_angles(fold(3.5), topo.hinges)[0] == pytest.approx(3.5 - 2 * np.pi, abs=1e-12)
+    w = 2.0 * rest.hinge_weights[0]
+    assert energy.value(fold(3.5)) == pytest.approx(w * 3.5 ** 2, rel=1e-12)
+    energy.set_hinge_branch(None)
+    assert energy.value(fold(3.5)) == pytest.approx(w * (3.5 - 2 * np.pi) ** 2, rel=1e-12)
+    energy.set_hinge_branch(branch)
+    assert energy.value(fold(3.5)) == pytest.approx(w * 3.5 ** 2, rel=1e-12)
+    with pytest.raises(InputError, match="hinge branch"):
+        energy.set_hinge_branch(np.zeros(3))

@@ -83,6 +83,31 @@ def test_owned_energies_include_the_flip_barrier(sphere_case) -> None:
     assert abs(from_elements - ev.value) <= 1e-13 * abs(ev.value)
 
 
+def test_patches_take_their_hinges_references_from_the_global_ones(sphere_case) -> None:
+    """Hinge references two turns off on every seventh hinge (``theta + 2 pi``): the patches'
+    owned energies, each patch given its slice of the global references, still add up to the
+    global W with the same references, which differs from W without them."""
+    from models.shell.hinge_angle import hinge_angles
+
+    problem, energies, x = sphere_case
+    theta = hinge_angles(x, problem.topology.hinges)
+    branch = theta.copy()
+    branch[::7] += 2 * np.pi
+    glob = problem.energy()
+    plain = glob.value(x)
+    glob.set_hinge_branch(branch)
+    w = glob.value(x)
+    total = 0.0
+    for pe in energies:
+        pe.set_state(x)
+        pe.set_hinge_branch(branch)
+        total += pe.owned_energy()
+        pe.set_hinge_branch(None)
+    print(f"W with references {w:.15e} (without {plain:.6e}), sum of owned {total:.15e}")
+    assert w > 1.5 * plain
+    assert abs(total - w) <= 1e-13 * abs(w)
+
+
 def test_sliced_rest_equals_recomputed(sphere_case) -> None:
     problem, energies, _ = sphere_case
     for pe in energies:

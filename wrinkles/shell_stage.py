@@ -85,7 +85,9 @@ def minimize_from_state(shell: Shell, solver: ShellNewtonSolver | SplitNewtonSol
 
     :func:`scale_tolerance`, then the solver's shift memory is set from ``shell.shifts`` and,
     however the solve ends, written back: the checkpoint carries it, so a resumed run takes
-    the steps of the run it continues.
+    the steps of the run it continues (bit for bit on the direct path; on the multigrid path
+    the coarser levels keep the Chebyshev bounds of their KSP's first set-up, a resumed run's
+    first frame, so it reaches the same minimisers to the solver's tolerance).
 
     Raises:
         ShellSolveError: as ``solver.minimize``.

@@ -128,9 +128,11 @@ class FrameRecord:
         """Return the one-line progress report printed by rank 0.
 
         Static scenes show the load parameter instead of a time. Frames with a shell add its
-        Newton iterations and solve time; two-way frames add ``coupling=<iterations>`` and,
-        when the body/shell fixed point stopped at ``max_iterations`` above its tolerance,
-        ``NOT converged (change ...)``.
+        Newton iterations and solve time and, when the shell Newton stopped at its
+        ``max_iterations`` above its gradient tolerance (the frame is kept, ``summary.json``
+        says ``shell_converged: false``), ``NOT converged (|g| ... > ...)``; two-way frames add
+        ``coupling=<iterations>`` and, when the body/shell fixed point stopped at
+        ``max_iterations`` above its tolerance, ``NOT converged (change ...)``.
         """
         clock = f"load={self.time:7.4f}" if static else f"t={self.time:9.4f} s"
         line = (f"frame {self.frame:4d}/{n_frames}  {clock}  "
@@ -139,6 +141,9 @@ class FrameRecord:
         if "shell_iterations" in self.details:
             line += (f"  shell={self.details['shell_iterations']:3d} its "
                      f"{self.details.get('shell_time_total', 0.0):6.2f} s")
+            if self.details.get("shell_converged") is False:
+                line += (f" NOT converged (|g| {self.details['shell_grad_norm']:.1e} > "
+                         f"{self.details['shell_tolerance']:.1e})")
         line += f"  wall={self.wall_time:7.3f} s"
         if "coupling_iterations" in self.details:
             line += f"  coupling={self.details['coupling_iterations']}"

@@ -9,7 +9,7 @@ from support import REPO
 
 import wrinkles.cli as cli
 from models.backend import MPI
-from wrinkles.runner import prepare, run_frames
+from wrinkles.runner import make_record, prepare, run_frames
 from wrinkles.scene import load_scene, scene_dict, scene_from_dict, with_frames
 
 DEFAULT = REPO / "scenes" / "drop_block.toml"  # the falling block (default.toml: wrinkles)
@@ -50,3 +50,25 @@ def test_check_refuses_bad_scene(capsys):
     captured = capsys.readouterr()
     assert captured.out == ""
     assert captured.err.startswith("error: drop_block.toml: material.nu must be < 0.5")
+
+
+def test_a_frame_whose_shell_stopped_above_its_tolerance_says_so(tmp_path):
+    """The default scene's first frame with ``shell.solver.max_iterations = 5``: the shell
+    Newton stops above its tolerance, the frame is kept and its progress line says ``NOT
+    converged`` with the gradient norm against the tolerance (as ``summary.json`` does)."""
+    scene = with_frames(load_scene(REPO / "scenes" / "default.toml",
+                                   ["output.render=false", "output.xdmf=false",
+                                    "shell.solver.max_iterations=5"]), 1)
+    lines: list[str] = []
+    run = run_frames(prepare(scene, tmp_path, MPI.COMM_WORLD), lines.append)
+    details = run.records[0].details
+    assert details["shell_iterations"] == 5 and details["shell_converged"] is False
+    assert details["shell_grad_norm"] > details["shell_tolerance"]
+    expected = (f" NOT converged (|g| {details['shell_grad_norm']:.1e} > "
+                f"{details['shell_tolerance']:.1e})")
+    assert lines[0].split("  wall=")[0].endswith(expected), lines[0]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["frames"][0]["details"]["shell_converged"] is False
+    main = {"time": 0.25, "newton_iterations": 3, "energy": 1.0, "min_det_f": 0.9}
+    done = make_record(1, {**main, **details, "shell_converged": True}, {}, 1.0)
+    assert "NOT converged" not in done.progress_line(1, static=True)

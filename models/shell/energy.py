@@ -2,7 +2,8 @@
 
 * ``W_L = sum_e (l_e - l0_e)^2 / l0_e`` edge membrane (:mod:`models.shell.membrane`),
 * ``W_A = sum_T (A_T - A0_T)^2 / A0_T`` area membrane (optional, ``k_A = 0`` switches it off),
-* ``W_B = sum_h w_h (theta_h - theta0_h)^2`` hinge bending (:mod:`models.shell.bending`),
+* ``W_B = sum_h w_h (theta_h - theta0_h)^2`` hinge bending (:mod:`models.shell.bending`), each
+  ``theta_h`` on the branch nearest to its reference angle once :meth:`follow_hinges` set one,
 * ``W_P = ||H (x - y)||^2`` cluster penalty to the embedded target y (:mod:`models.shell.penalty`),
 * ``W_F = sum_T w_T b(s_T)`` flip barrier (:mod:`models.shell.barrier`, ours, not in the draft)
   over the faces of rest quality below ``flip_quality`` (by default every face):

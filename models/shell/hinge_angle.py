@@ -32,10 +32,8 @@ Jacobians", Graph. Models 75(6)). Each face ``(p, q, r)`` with edge ``e' = x_q -
 
 Hessian: each face's contribution differentiated once more (:func:`_face_hess`).
 
-Branches: ``theta`` jumps from ``+pi`` to ``-pi`` when a fold closes past flat-on-flat (the two
-faces back to back, then through each other). A caller that follows a hinge continuously
-passes a reference angle; :func:`on_branch` then returns the angle ``theta + 2 pi k`` nearest to
-it (the same value while ``|theta - reference| < pi``), with the same derivatives.
+Branches: past flat-on-flat ``theta`` jumps from ``+pi`` to ``-pi``; :func:`on_branch` takes
+``theta + 2 pi k`` nearest to a reference angle instead (same derivatives).
 
 Only ``|n|^2 > 0`` and ``|e| > 0`` are needed: near-degenerate faces (height/edge ~ 1e-3 or
 smaller) give finite, accurate values; ``theta`` near +-pi is handled by ``atan2`` (the

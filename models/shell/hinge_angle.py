@@ -15,7 +15,8 @@ the bend angle is the half-angle ``atan2`` form (never ``acos``, exact near 0 an
     theta = 2 atan2((n0 x n1) . e_hat, n0 . n1 + |n0| |n1|)  in (-pi, pi],
 
 evaluated as ``sign((n0 x n1) . e) 2 atan2(|u - v|, |u + v|)`` with unit normals ``u, v``
-(no cancellation near +-pi).
+(no cancellation near +-pi). Past flat-on-flat it jumps from ``+pi`` to ``-pi``;
+:func:`on_branch` gives ``theta + 2 pi k`` nearest to a reference angle (same derivatives).
 
 ``theta = 0`` for a flat hinge. Sign: ``theta > 0`` for a *convex* fold, i.e. when the two
 faces bend away from the side their normals point to (a roof ridge seen from outside a closed
@@ -31,9 +32,6 @@ Jacobians", Graph. Models 75(6)). Each face ``(p, q, r)`` with edge ``e' = x_q -
     d theta/d x_p += (1 - t) f,   d theta/d x_q += t f,   d theta/d x_r += -f.
 
 Hessian: each face's contribution differentiated once more (:func:`_face_hess`).
-
-Branches: past flat-on-flat ``theta`` jumps from ``+pi`` to ``-pi``; :func:`on_branch` takes
-``theta + 2 pi k`` nearest to a reference angle instead (same derivatives).
 
 Only ``|n|^2 > 0`` and ``|e| > 0`` are needed: near-degenerate faces (height/edge ~ 1e-3 or
 smaller) give finite, accurate values; ``theta`` near +-pi is handled by ``atan2`` (the

@@ -1,7 +1,8 @@
 """``wrinkles plot RUN``: one PNG of a run's per-frame numbers, read from its ``summary.json``.
 
 Four panels over the frame number: the energies (body total, shell terms), the Newton
-iterations (body, shell; coupling iterations of two-way frames), the wall time per stage, and
+iterations (body, shell, a red cross where the shell stopped above its tolerance; coupling
+iterations of two-way frames), the wall time per stage, and
 the smallest ``det F`` with the wrinkle amplitude (normal offset over the mean edge length).
 Energies that change sign are drawn on a symmetric-log axis. Written as ``RUN/plots.png``
 (matplotlib, Agg backend: no display needed).
@@ -46,12 +47,33 @@ def series(frames: list[dict[str, Any]], key: str) -> np.ndarray:
 
 def plot_run(run: Path, width: float = 11.0, height: float = 8.0) -> Path:
     """Draw the four panels of a run into ``run/plots.png``; return the path."""
+    import matplotlib.pyplot as plt
+
+    fig = summary_figure(read_summary(run), run.name, width, height)
+    path = run / PLOT_NAME
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def unconverged_frames(frames: list[dict[str, Any]]) -> list[int]:
+    """Return the frames whose shell Newton stopped above its tolerance (not converged)."""
+    return [int(r["frame"]) for r in frames
+            if r.get("details", {}).get("shell_converged") is False]
+
+
+def summary_figure(summary: dict[str, Any], name: str, width: float = 11.0,
+                   height: float = 8.0) -> Any:
+    """Draw the four panels of :func:`plot_run` into a new figure (``name``: fallback title).
+
+    Frames whose shell solve stopped above its tolerance are marked with a red cross on the
+    shell's iteration curve, labelled "shell NOT converged".
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    summary = read_summary(run)
     frames = summary["frames"]
     k = np.array([r["frame"] for r in frames])
     fig, axes = plt.subplots(2, 2, figsize=(width, height), sharex=True)
@@ -70,6 +92,10 @@ def plot_run(run: Path, width: float = 11.0, height: float = 8.0) -> Path:
         values = series(frames, key)
         if np.isfinite(values).any():
             ax.plot(k, values, "o-", label=label)
+    stopped = np.isin(k, unconverged_frames(frames))
+    if stopped.any():
+        ax.plot(k[stopped], series(frames, "shell_iterations")[stopped], "x", color="red",
+                markersize=10, markeredgewidth=2, label="shell NOT converged")
     ax.set_ylabel("iterations per frame")
     ax.legend(fontsize=7)
     ax = axes[1, 0]
@@ -89,13 +115,13 @@ def plot_run(run: Path, width: float = 11.0, height: float = 8.0) -> Path:
         ax.plot(k, amplitude, "s-", label="wrinkle amplitude / edge")
     ax.set_xlabel("frame")
     ax.legend(fontsize=7)
-    title = summary.get("scene", {}).get("title") or run.name
-    fig.suptitle(f"{title} ({len(frames)} frames, {summary.get('run', {}).get('status', '?')})")
+    title = summary.get("scene", {}).get("title") or name
+    status = summary.get("run", {}).get("status", "?")
+    stopped_count = len(unconverged_frames(frames))
+    status += f"; shell NOT converged in {stopped_count}" if stopped_count else ""
+    fig.suptitle(f"{title} ({len(frames)} frames, {status})")
     fig.tight_layout()
-    path = run / PLOT_NAME
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return fig
 
 
 def add_parser(commands: Any) -> Any:

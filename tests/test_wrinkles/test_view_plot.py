@@ -77,6 +77,30 @@ def test_plot_writes_a_png_with_four_panels(sofa):
     assert image.size[0] > 800 and image.size[1] > 600
 
 
+def test_plot_marks_the_frames_whose_shell_stopped_above_its_tolerance(sofa):
+    """The iteration panel gets red crosses on the shell's curve at the frames whose
+    ``shell_converged`` is false, and none for a run whose frames all converged."""
+    import copy
+
+    import matplotlib.pyplot as plt
+
+    from wrinkles.plot import read_summary, summary_figure, unconverged_frames
+
+    summary = read_summary(sofa)
+    assert unconverged_frames(summary["frames"]) == []
+    labels = [line.get_label() for line in summary_figure(summary, "sofa").axes[1].lines]
+    assert "shell NOT converged" not in labels
+    stopped = copy.deepcopy(summary)
+    stopped["frames"][1]["details"]["shell_converged"] = False
+    assert unconverged_frames(stopped["frames"]) == [stopped["frames"][1]["frame"]]
+    fig = summary_figure(stopped, "sofa")
+    (cross,) = [line for line in fig.axes[1].lines if line.get_label() == "shell NOT converged"]
+    assert list(cross.get_xdata()) == [stopped["frames"][1]["frame"]]
+    assert list(cross.get_ydata()) == [stopped["frames"][1]["details"]["shell_iterations"]]
+    assert fig.texts[0].get_text().endswith("; shell NOT converged in 1)")
+    plt.close("all")
+
+
 def test_plot_of_a_directory_without_a_run_is_bad_input(tmp_path):
     proc = wrinkles("plot", str(tmp_path))
     assert proc.returncode == 1

@@ -140,9 +140,8 @@ def _fill_block(hb: np.ndarray, g: np.ndarray, two_w: float, d: float,
 def _check_rest(hinges: np.ndarray, theta0: np.ndarray, weights: np.ndarray,
                 branch: np.ndarray | None = None) -> None:
     """Raise InputError naming ``theta0`` / ``weights`` / ``branch`` not matching ``hinges``."""
-    named = [("theta0", theta0), ("weights", weights)]
-    for name, arr in named + ([("branch", branch)] if branch is not None else []):
-        if arr.shape != (hinges.shape[0],) or arr.dtype != np.float64:
+    for name, arr in (("theta0", theta0), ("weights", weights), ("branch", branch)):
+        if arr is not None and (arr.shape != (hinges.shape[0],) or arr.dtype != np.float64):
             raise InputError(f"{name}: expected ({hinges.shape[0]},) float64, "
                              f"got {arr.shape} {arr.dtype}")
 

@@ -86,40 +86,37 @@ def _edge_index(edges: np.ndarray, n: int, a: np.ndarray, b: np.ndarray) -> np.n
 
 
 def slice_rest(problem: ShellProblem, local: np.ndarray, faces: np.ndarray,
-               topo: ShellTopology) -> RestState:
+               ids: tuple[np.ndarray, np.ndarray]) -> RestState:
     """Rest state of a local topology sliced from the global rest state.
 
     Args:
         problem: The global problem.
         local: Global id of each local vertex.
-        faces: Global index of each local face (same order as ``topo.faces``).
-        topo: Local topology built from ``local``-renumbered ``faces``.
+        faces: Global index of each local face (same order as the local topology's faces).
+        ids: Global index of each local edge and of each local hinge (:func:`global_ids`).
 
     Hinge angles need no sign fix: a local hinge ``[j, i, l, k]`` (renumbering swapped the
     edge's vertex order) has the same signed angle as ``[i, j, k, l]``, since the two face
     normals and the edge direction all swap together.
 
     """
-    r = problem.rest
-    ge = global_edges(problem.topology, local, topo)
-    gh = global_hinges(problem.topology, local, topo)
+    r, (ge, gh) = problem.rest, ids
     return RestState(positions=r.positions[local], rest_lengths=r.rest_lengths[ge],
                      rest_areas=r.rest_areas[faces], rest_angles=r.rest_angles[gh],
                      hinge_weights=r.hinge_weights[gh], vertex_areas=r.vertex_areas[local])
 
 
-def global_edges(topology: ShellTopology, local: np.ndarray, topo: ShellTopology) -> np.ndarray:
-    """Global index of each edge of the local topology ``topo`` (``local``: its vertices)."""
-    return _edge_index(topology.edges, topology.n_vertices, local[topo.edges[:, 0]],
-                       local[topo.edges[:, 1]])
+def global_ids(topology: ShellTopology, local: np.ndarray, topo: ShellTopology
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Global index of each edge and of each hinge (by its interior edge) of ``topo``.
 
-
-def global_hinges(topology: ShellTopology, local: np.ndarray, topo: ShellTopology
-                  ) -> np.ndarray:
-    """Global index of each hinge of the local topology ``topo`` (by its interior edge)."""
+    ``topo``: a local topology on the global vertices ``local``.
+    """
+    edges = _edge_index(topology.edges, topology.n_vertices, local[topo.edges[:, 0]],
+                        local[topo.edges[:, 1]])
     edge_to_hinge = np.full(topology.n_edges, -1, dtype=np.int64)
     edge_to_hinge[topology.hinge_edge] = np.arange(topology.hinge_edge.size)
-    return edge_to_hinge[global_edges(topology, local, topo)[topo.hinge_edge]]
+    return edges, edge_to_hinge[edges[topo.hinge_edge]]
 
 
 def leading_rows(matrix: sp.csr_matrix, m: int) -> sp.csr_matrix:
@@ -178,13 +175,14 @@ class PatchEnergy:
         g2l = np.full(problem.topology.n_vertices, -1, dtype=np.int64)
         g2l[self.local] = np.arange(self.local.size)
         topo = ShellTopology.from_faces(g2l[problem.topology.faces[faces]], self.local.size)
-        rest = slice_rest(problem, self.local, faces, topo)
+        ids = global_ids(problem.topology, self.local, topo)
+        self.hinge_ids = ids[1]
+        rest = slice_rest(problem, self.local, faces, ids)
         params = problem.params if h_rows is not None else replace(problem.params, k_P=0.0)
         h_local = sp.csr_matrix(h_rows[:, self.local]) if h_rows is not None else None
         self._h_local = h_local
         energy = ShellEnergy(topo, rest, params, H=h_local)
         energy.set_target(problem.target[self.local])
-        self.hinge_ids = global_hinges(problem.topology, self.local, topo)
         return energy
 
     def set_hinge_branch(self, branch: np.ndarray | None) -> None:

@@ -117,47 +117,44 @@ def _minimize(shell: Shell, x0: np.ndarray) -> tuple[np.ndarray, ShellSolveRepor
 
 
 START_HALVINGS: int = 40
-"""Halvings of a turned-over face's offsets in :func:`admissible_start` before they are zeroed."""
+"""Halvings of a blocked stencil's offsets in :func:`admissible_start` before they are zeroed."""
 
 
 def admissible_start(energy: ShellEnergy, x0: np.ndarray, anchor: np.ndarray
                      ) -> tuple[np.ndarray, int]:
-    """Return a warm start with a finite flip barrier and the number of vertices it moved.
+    """Return a warm start with finite barriers and the number of vertices it moved.
 
     The warm start ``x_prev + (y - y_prev)`` carries the previous offset from the target onto
-    the new target ``y``, but the barrier's reference normals are the face normals of ``y``
-    (:meth:`models.shell.energy.ShellEnergy.set_target`): a face that ended the previous
+    the new target ``y``, but the flip barrier's reference normals are the face normals of
+    ``y`` (:meth:`models.shell.energy.ShellEnergy.set_target`): a face that ended the previous
     solve close to the barrier (s ~ 0.01, a wrinkle fold standing at ~90 degrees to its
     target face) is turned over against the new normals (s <= 0, W = +inf) when the target
-    rotates under it, e.g. when two-way coupling moves the body (docs/notes/two-way-coupling.md).
+    rotates under it, e.g. when two-way coupling moves the body (docs/notes/two-way-coupling.md);
+    likewise a fold held shut by the fold contact can be carried through itself.
 
-    Repair: for each face whose barrier is +inf, the offsets ``x0 - anchor`` of its three
-    vertices are halved, repeated until no face is turned over (after
-    :data:`START_HALVINGS` halvings they are set to 0). The anchor (the target plus the
-    imperfection) has ``s > 0`` on every face whose target face is not degenerate, so only
-    the vertices around the turned-over faces move and the wrinkles elsewhere are kept. A
-    start that is admissible is returned unchanged (the same array: bitwise the old warm
-    start, so one-way runs that never hit this are unchanged).
+    Repair: the offsets ``x0 - anchor`` of the vertices of every blocked stencil
+    (:meth:`~models.shell.energy.ShellEnergy.blocked_vertices`) are halved, repeated until
+    none is blocked (after :data:`START_HALVINGS` halvings they are set to 0). The anchor
+    (the target plus the imperfection) has no blocked stencil where the target is not
+    degenerate, so only the vertices around them move and the wrinkles elsewhere are kept.
+    A start that is admissible is returned unchanged (the same array).
 
     Raises:
-        SolverError: a face is turned over even at the anchor (degenerate target face).
+        SolverError: a stencil is blocked even at the anchor (degenerate target).
 
     """
-    bad = energy.turned_over(x0)
-    if bad.size == 0:
+    verts = energy.blocked_vertices(x0)
+    if verts.size == 0:
         return x0, 0
     x = np.array(x0, dtype=np.float64, copy=True)
-    faces = energy.topology.faces
     for halving in range(START_HALVINGS + 1):
-        verts = np.unique(faces[bad])
         factor = 0.5 if halving < START_HALVINGS else 0.0
         x[verts] = anchor[verts] + factor * (x[verts] - anchor[verts])
-        bad = energy.turned_over(x)
-        if bad.size == 0:
+        verts = energy.blocked_vertices(x)
+        if verts.size == 0:
             return x, int(np.any(x != x0, axis=1).sum())
-    raise SolverError(f"shell warm start: face {int(bad[0])} {faces[bad[0]].tolist()} is turned "
-                      f"over against its target normal even at the target (degenerate target "
-                      f"face?)")
+    raise SolverError(f"shell warm start: vertex {int(verts[0])} is on a face turned over or a "
+                      f"fold closed through itself even at the target (degenerate target?)")
 
 
 def settled(shell: Shell, x0: np.ndarray) -> bool:

@@ -51,6 +51,7 @@ from models.shell.assembly import (
     project_psd_blocks,
     scatter_block,
 )
+from models.shell.log_barrier import log_barrier
 from models.shell.membrane import cyclic_sign, skew_entry
 from models.shell.rest import face_normals, squared_edges
 from models.shell.schedule import StencilSchedule
@@ -60,13 +61,6 @@ def check_activation(s_hat: float, name: str = "flip_activation") -> None:
     """Raise InputError naming ``name`` unless ``0 < s_hat <= 1``."""
     if not (np.isfinite(s_hat) and 0.0 < s_hat <= 1.0):
         raise InputError(f"{name}: must be in (0, 1], got {s_hat!r}")
-
-
-@numba.njit(cache=True, inline="always")
-def _barrier(s: float, s_hat: float) -> tuple[float, float, float]:  # pragma: no cover - numba
-    """``(b, b', b'')`` of the IPC log barrier at ``0 < s < s_hat``."""
-    t, lg = s - s_hat, np.log(s / s_hat)
-    return -t * t * lg, -2.0 * t * lg - t * t / s, -2.0 * lg - 4.0 * t / s + t * t / (s * s)
 
 
 @numba.njit(cache=True, fastmath=False, nogil=True)
@@ -104,7 +98,7 @@ def _flip_kernel(index: np.ndarray, x: np.ndarray, faces: np.ndarray, rest_area:
             if order >= 2 and not fused:
                 blocks[f] = 0.0
             continue
-        bv, b1, b2 = _barrier(s, s_hat)
+        bv, b1, b2 = log_barrier(s, s_hat)
         vals[f] = w * bv
         if order < 1:
             continue

@@ -17,6 +17,13 @@ Derivatives (exact, Tamstorf & Grinspun 2013):
 ``hessian_mode``: "exact"; "gauss_newton" drops the indefinite second part; "projected" clamps
 the eigenvalues of each exact 12x12 block to >= 0.
 
+Fold contact (ours, not in the draft; ``contact`` > 0): each hinge also pays ``c w_h b(pi -
+|theta_h|)``, the log barrier of :mod:`models.shell.log_barrier` in the gap to flat-on-flat,
+so a fold closes until its two faces touch, not through them; bit for bit nothing while every
+hinge keeps ``|theta| <= pi - d_hat``. Its derivatives enter as ``f'' grad theta grad theta^T
++ f' hess theta`` like the bending's. It needs each angle on its followed branch (``branch``):
+on ``(-pi, pi]`` a trial step across pi would read a wide-open fold and pass through.
+
 Continuum limit: on equilateral meshes the energy density tends to (k1 + k2)^2 + 2 (k1 - k2)^2,
 3x a plate with nu = -1/3, so a cylindrical bend costs 3x the plate energy with k_B = D/2
 (derivation and measurements: docs/notes/hinge-bending-limit.md).
@@ -41,12 +48,11 @@ from models.shell.assembly import (
 )
 from models.shell.hinge_angle import (
     check_hinge_arrays,
-    hinge_angles,
-    on_branch,
     on_branch_one,
     theta_derivs_one,
     theta_one,
 )
+from models.shell.log_barrier import log_barrier
 from models.shell.schedule import StencilSchedule
 
 _MODE_CODE = {"exact": 0, "gauss_newton": 1, "projected": 0}
@@ -86,14 +92,16 @@ def _bending_kernel(index: np.ndarray, x: np.ndarray, hinges: np.ndarray, theta0
                     weights: np.ndarray, order: int, mode: int, grad: np.ndarray,
                     blocks: np.ndarray, energies: np.ndarray, fused: bool, data: np.ndarray,
                     base: np.ndarray, row_len: np.ndarray, project: bool,
-                    q: np.ndarray, branch: np.ndarray) -> float:  # pragma: no cover - numba
+                    q: np.ndarray, branch: np.ndarray, contact: float,
+                    gap_hat: float) -> float:  # pragma: no cover - numba
     """Fused pass over the hinges ``index``: energy, gradient scatter and 12x12 block.
 
     Mode 0 exact, 1 Gauss-Newton. With ``fused`` the block is built in a scratch array,
     PSD-projected if ``project`` (reduced clamp with basis ``q``) and added into ``data``
     (:class:`HessianSink`) instead of stored. ``branch`` (Hn,) or empty: each angle taken
-    on the branch nearest to its entry (:func:`on_branch`). Returns the energy of those
-    hinges.
+    on the branch nearest to its entry (:func:`on_branch`). ``contact > 0``: the fold
+    contact ``contact w_h b(pi - |theta|)`` below ``gap_hat`` (+inf at a closed fold).
+    Returns the energy of those hinges.
     """
     g = np.empty(12)
     scratch3 = np.empty((1, 12, 12))
@@ -110,14 +118,25 @@ def _bending_kernel(index: np.ndarray, x: np.ndarray, hinges: np.ndarray, theta0
             theta = on_branch_one(theta, branch[h])
         d = theta - theta0[h]
         energies[h] = weights[h] * d * d
+        f1, f2 = 2.0 * weights[h] * d, 2.0 * weights[h]  # dE/dtheta, d2E/dtheta2
+        gap = np.pi - abs(theta)
+        if contact > 0.0 and gap < gap_hat:
+            if gap <= 0.0:
+                energies[h] = np.inf
+                total += np.inf
+                continue
+            bv, b1, b2 = log_barrier(gap, gap_hat)
+            cw = contact * weights[h]
+            energies[h] += cw * bv
+            f1 -= cw * b1 if theta > 0.0 else -cw * b1  # d gap / d theta = -sign(theta)
+            f2 += cw * b2
         total += energies[h]
         if order >= 1:
-            c = 2.0 * weights[h] * d
             for m in range(4):
                 for k in range(3):
-                    grad[3 * hinges[h, m] + k] += c * g[3 * m + k]
+                    grad[3 * hinges[h, m] + k] += f1 * g[3 * m + k]
         if order >= 2:
-            _fill_block(hb, g, 2.0 * weights[h], d, mode == 0)
+            _fill_block(hb, g, f2, f1, mode == 0)
             if fused:
                 if project:
                     project_psd(scratch3, q)
@@ -126,13 +145,17 @@ def _bending_kernel(index: np.ndarray, x: np.ndarray, hinges: np.ndarray, theta0
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _fill_block(hb: np.ndarray, g: np.ndarray, two_w: float, d: float,
+def _fill_block(hb: np.ndarray, g: np.ndarray, f2: float, f1: float,
                 exact: bool) -> None:  # pragma: no cover - numba
-    """``hb <- 2w (g g^T + d hb)`` (exact) or ``2w g g^T`` (Gauss-Newton), symmetrised."""
-    s = two_w * d if exact else 0.0
+    """``hb <- f2 g g^T + f1 hb`` (exact) or ``f2 g g^T`` (Gauss-Newton), symmetrised.
+
+    ``g``, ``hb``: the angle's gradient and Hessian; ``f1``, ``f2``: the hinge energy's first
+    and second derivatives in the angle.
+    """
+    s = f1 if exact else 0.0
     for a in range(12):
         for b in range(a, 12):
-            v = two_w * g[a] * g[b] + (0.5 * s * (hb[a, b] + hb[b, a]) if exact else 0.0)
+            v = f2 * g[a] * g[b] + (0.5 * s * (hb[a, b] + hb[b, a]) if exact else 0.0)
             hb[a, b] = v
             hb[b, a] = v
 
@@ -146,11 +169,20 @@ def _check_rest(hinges: np.ndarray, theta0: np.ndarray, weights: np.ndarray,
                              f"got {arr.shape} {arr.dtype}")
 
 
+def check_contact(contact: float, gap: float) -> None:
+    """Raise InputError naming the fold contact's stiffness or gap when out of range."""
+    if not (np.isfinite(contact) and contact >= 0.0):
+        raise InputError(f"fold_contact: must be finite and >= 0, got {contact!r}")
+    if not (np.isfinite(gap) and 0.0 < gap < np.pi):
+        raise InputError(f"fold_gap: must be in (0, pi) rad, got {gap!r}")
+
+
 def hinge_bending(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights: np.ndarray,
                   *, order: int = 2, hessian_mode: HessianMode = "exact",
                   sink: HessianSink | None = None,
                   schedule: StencilSchedule | None = None,
-                  branch: np.ndarray | None = None) -> TermEval:
+                  branch: np.ndarray | None = None, contact: float = 0.0,
+                  contact_gap: float = 0.1) -> TermEval:
     """Hinge bending energy ``W_B = sum_h w_h (theta_h - theta0_h)^2`` and its derivatives.
 
     One fused numba pass computes, per hinge, the angle, its exact gradient and (order 2)
@@ -174,6 +206,10 @@ def hinge_bending(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights
             hinge nearest to ``branch[h]`` (:func:`models.shell.hinge_angle.on_branch`), so
             a fold followed past ``+-pi`` keeps a smooth, growing energy; None: ``theta`` in
             ``(-pi, pi]``. The derivatives do not change.
+        contact: Fold contact ``c`` (dimensionless, 0 = off): each hinge also pays
+            ``c w_h b(pi - |theta_h|)``, the log barrier of :mod:`models.shell.log_barrier` in
+            the gap to flat-on-flat (its two faces touching), +inf at a closed fold.
+        contact_gap: The barrier's activation gap ``d_hat`` [rad], in ``(0, pi)``.
 
     Returns:
         TermEval with ``value``, ``grad`` (3 n,), ``blocks`` (Hn, 12, 12) and
@@ -186,6 +222,7 @@ def hinge_bending(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights
     check_hessian_mode(hessian_mode)
     check_hinge_arrays(x, hinges)
     _check_rest(hinges, theta0, weights, branch)
+    check_contact(contact, contact_gap)
     grad = np.zeros(x.size if order >= 1 else 0)
     fused, data, base, row_len = HessianSink.unpacked(sink if order >= 2 else None, 4)
     blocks = np.empty((hinges.shape[0] if order >= 2 and not fused else 0, 12, 12))
@@ -195,7 +232,8 @@ def hinge_bending(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights
     value = (schedule or StencilSchedule.serial(hinges.shape[0])).run(
         lambda index: _bending_kernel(index, xc, hinges, theta0, weights, order, mode, grad,
                                       blocks, energies, fused, data, base, row_len,
-                                      hessian_mode == "projected", _HINGE_Q, br))
+                                      hessian_mode == "projected", _HINGE_Q, br,
+                                      float(contact), float(contact_gap)))
     if not np.isfinite(value):
         if not np.all(np.isfinite(x)):
             raise InputError("x: non-finite coordinate")
@@ -209,12 +247,13 @@ def hinge_bending(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray, weights
 
 def bending_energy_density(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray,
                            weights: np.ndarray, vertex_areas: np.ndarray,
-                           branch: np.ndarray | None = None) -> np.ndarray:
+                           branch: np.ndarray | None = None, contact: float = 0.0,
+                           contact_gap: float = 0.1) -> np.ndarray:
     """Per-vertex bending energy density for visualisation.
 
-    ``rho_v = (sum_{h : v in edge(h)} E_h / 2) / A_v`` with ``E_h = w_h (theta_h - theta0_h)^2``
-    split equally between the two edge vertices ``i, j`` of each hinge; ``sum_v rho_v A_v
-    = W_B``.
+    ``rho_v = (sum_{h : v in edge(h)} E_h / 2) / A_v`` with ``E_h`` the hinge's energy in
+    :func:`hinge_bending` (``w_h (theta_h - theta0_h)^2``, plus its fold contact) split
+    equally between the two edge vertices ``i, j`` of each hinge; ``sum_v rho_v A_v = W_B``.
 
     Args:
         x: (n, 3) current positions.
@@ -223,17 +262,18 @@ def bending_energy_density(x: np.ndarray, hinges: np.ndarray, theta0: np.ndarray
         weights: (Hn,) hinge weights.
         vertex_areas: (n,) positive vertex areas (e.g. a third of the incident face areas).
         branch: (Hn,) reference angles, as in :func:`hinge_bending` (None: none).
+        contact: Fold contact stiffness, as in :func:`hinge_bending` (0: off).
+        contact_gap: The fold contact's activation gap [rad].
 
     Returns:
         (n,) energy per unit area at each vertex.
 
     """
-    check_hinge_arrays(x, hinges)
-    _check_rest(hinges, theta0, weights, branch)
     if vertex_areas.shape != (x.shape[0],) or not np.all(vertex_areas > 0):
         raise InputError(f"vertex_areas: expected ({x.shape[0]},) positive areas")
-    theta = hinge_angles(x, hinges)
-    e_h = weights * ((theta if branch is None else on_branch(theta, branch)) - theta0) ** 2
+    e_h = hinge_bending(x, hinges, theta0, weights, order=0, branch=branch, contact=contact,
+                        contact_gap=contact_gap).element_values
+    assert e_h is not None  # hinge_bending always returns them (internal invariant)
     per_vertex = np.bincount(hinges[:, :2].ravel(), weights=np.repeat(0.5 * e_h, 2),
                              minlength=x.shape[0])
     return per_vertex / vertex_areas

@@ -2,8 +2,9 @@
 
 * ``W_L = sum_e (l_e - l0_e)^2 / l0_e`` edge membrane (:mod:`models.shell.membrane`),
 * ``W_A = sum_T (A_T - A0_T)^2 / A0_T`` area membrane (optional, ``k_A = 0`` switches it off),
-* ``W_B = sum_h w_h (theta_h - theta0_h)^2`` hinge bending (:mod:`models.shell.bending`), each
-  ``theta_h`` on the branch nearest to its reference angle once :meth:`follow_hinges` set one,
+* ``W_B = sum_h w_h [(theta_h - theta0_h)^2 + c b(pi - |theta_h|)]`` hinge bending with its fold
+  contact ``c = fold_contact`` (:mod:`models.shell.bending`), each ``theta_h`` on the branch
+  nearest to its reference angle once :meth:`follow_hinges` set one,
 * ``W_P = ||H (x - y)||^2`` cluster penalty to the embedded target y (:mod:`models.shell.penalty`),
 * ``W_F = sum_T w_T b(s_T)`` flip barrier (:mod:`models.shell.barrier`, ours, not in the draft)
   over the faces of rest quality below ``flip_quality`` (by default every face):
@@ -49,7 +50,7 @@ from models.shell.barrier import (
     flip_barrier,
     reference_normals,
 )
-from models.shell.bending import bending_energy_density, hinge_bending
+from models.shell.bending import bending_energy_density, check_contact, hinge_bending
 from models.shell.dofs import check_positions
 from models.shell.hinge_angle import hinge_angles, on_branch
 from models.shell.membrane import area_membrane, edge_membrane
@@ -126,6 +127,12 @@ class ShellParams:
             (dimensionless; ``s = A / A0`` times the cosine of the tilt from the reference).
         flip_quality: The barrier covers the faces of rest quality ``4 sqrt(3) A / sum |e|^2``
             below this, in [0, 1] (dimensionless; 1 = every face, 0 = none).
+        fold_contact: Contact of a hinge's two faces (dimensionless, 0 = off): each hinge
+            also pays ``fold_contact k_B w_h b(pi - |theta_h|)``, IPC's log barrier in the gap
+            to flat-on-flat (:func:`models.shell.bending.hinge_bending`), so a fold closes up
+            to its faces touching, not through them (docs/notes/hinge-branches.md).
+        fold_gap: The fold contact's activation gap ``d_hat`` [rad], in ``(0, pi)``: zero
+            while every hinge keeps ``|theta| <= pi - fold_gap``.
         hessian_mode: "exact", "gauss_newton" or "projected" local Hessians.
         penalty_hessian: "assembled" (H^T H merged into the pattern) or "low_rank" (the factor
             G is returned instead and the assembled Hessian excludes the penalty).
@@ -142,6 +149,8 @@ class ShellParams:
     k_F: float = 1e3
     flip_activation: float = 0.1
     flip_quality: float = 1.0
+    fold_contact: float = 1.0
+    fold_gap: float = 0.1
     hessian_mode: HessianMode = "exact"
     penalty_hessian: PenaltyHessian = "assembled"
     threads: int = 1
@@ -155,6 +164,7 @@ class ShellParams:
         check_activation(self.flip_activation)
         if not (np.isfinite(self.flip_quality) and 0.0 <= self.flip_quality <= 1.0):
             raise InputError(f"flip_quality: must be in [0, 1], got {self.flip_quality!r}")
+        check_contact(self.fold_contact, self.fold_gap)
         check_hessian_mode(self.hessian_mode)
         check_threads(self.threads, "threads")
         if self.penalty_hessian not in ("assembled", "low_rank"):
@@ -250,7 +260,9 @@ class ShellEnergy:
 
     def _bend_kernel(self, x: np.ndarray, hinges: np.ndarray, **kw: Any) -> TermEval:
         """Evaluate the hinge bending on the current angle branches (:meth:`follow_hinges`)."""
-        return hinge_bending(x, hinges, branch=self._branch, **kw)
+        p = self.params
+        return hinge_bending(x, hinges, branch=self._branch, contact=p.fold_contact,
+                             contact_gap=p.fold_gap, **kw)
 
     def follow_hinges(self, x: np.ndarray) -> None:
         """Make the hinge angles at ``x``, followed from the current branches, the new ones.
@@ -364,21 +376,26 @@ class ShellEnergy:
         """Indices of the faces the flip barrier covers (rest quality < ``flip_quality``)."""
         return self._flip.copy()
 
-    def turned_over(self, x: np.ndarray) -> np.ndarray:
-        """Faces (indices into the topology) turned over at ``x``: flip barrier ``+inf``.
+    def blocked_vertices(self, x: np.ndarray) -> np.ndarray:
+        """Vertices of the stencils whose barrier is ``+inf`` at ``x`` (sorted, unique).
 
-        A covered face whose area projected on its reference normal is not positive (``s <=
-        0``, :mod:`models.shell.barrier`); only the barrier term is evaluated. Empty without
-        the barrier.
+        The faces of a covered face turned over against its reference normal (flip barrier,
+        ``s <= 0``, :mod:`models.shell.barrier`) and the four vertices of each hinge closed
+        through itself (fold contact, ``|theta| >= pi``); only those two terms are evaluated.
+        Empty when neither is on or nothing is blocked.
         """
-        term = next((t for t in self._terms if t.name == "flip_barrier"), None)
-        if term is None:
-            return np.zeros(0, dtype=np.int64)
-        ev = term.evaluate(check_positions(x, self.n_vertices), 0, self.params.hessian_mode,
-                           None, self._schedules.get(term.name))
-        if np.isfinite(ev.value) or ev.element_values is None:
-            return np.zeros(0, dtype=np.int64)
-        return self._flip[~np.isfinite(ev.element_values)]
+        xc = check_positions(x, self.n_vertices)
+        blocked = [np.zeros(0, dtype=np.int64)]
+        for term in self._terms:
+            if term.name not in ("flip_barrier", "bending") or \
+                    (term.name == "bending" and self.params.fold_contact == 0.0):
+                continue
+            ev = term.evaluate(xc, 0, self.params.hessian_mode, None,
+                               self._schedules.get(term.name))
+            if np.isfinite(ev.value) or ev.element_values is None:
+                continue
+            blocked.append(term.stencils[~np.isfinite(ev.element_values)].ravel())
+        return np.unique(np.concatenate(blocked))
 
     def value(self, x: np.ndarray) -> float:
         """Total energy W(x)."""
@@ -457,7 +474,8 @@ class ShellEnergy:
             return np.zeros(self.n_vertices)
         areas = np.where(self.rest.vertex_areas > 0, self.rest.vertex_areas, 1.0)
         return bending_energy_density(xc, self.topology.hinges, self.rest.rest_angles,
-                                      self._bend_weights, areas, self._branch)
+                                      self._bend_weights, areas, self._branch,
+                                      self.params.fold_contact, self.params.fold_gap)
 
 
 def flip_faces(topology: ShellTopology, rest: RestState, flip_quality: float) -> np.ndarray:

@@ -88,16 +88,17 @@ def test_rotated_target_turns_the_carried_fold_over() -> None:
         ShellNewtonSolver(energy).minimize(x0)  # type: ignore[arg-type]
 
 
-def test_turned_over_names_the_folds_two_faces_from_the_barrier_alone() -> None:
-    """``ShellEnergy.turned_over`` evaluates only the flip barrier: the same faces as the
-    whole energy's per-face barrier values (the fold's two, both holding its lifted vertex),
-    none at the target."""
+def test_blocked_vertices_are_the_turned_over_faces_from_the_barriers_alone() -> None:
+    """``ShellEnergy.blocked_vertices`` evaluates only the barriers: the vertices of the
+    faces whose flip barrier the whole energy gives as +inf (the fold's two, both holding its
+    lifted vertex), none at the target."""
     x0, y, energy, v = rotated_fold()
-    bad = energy.turned_over(x0)
+    verts = energy.blocked_vertices(x0)
     whole = energy.evaluate(x0, order=0).elements["flip_barrier"]
-    assert np.array_equal(bad, energy.flip_faces[~np.isfinite(whole)])
-    assert bad.size == 2 and all(v in face for face in energy.topology.faces[bad])
-    assert energy.turned_over(y).size == 0
+    faces = energy.topology.faces[energy.flip_faces[~np.isfinite(whole)]]
+    assert faces.shape[0] == 2 and all(v in face for face in faces)
+    assert np.array_equal(verts, np.unique(faces))
+    assert energy.blocked_vertices(y).size == 0
 
 
 def test_admissible_start_moves_only_the_fold_and_newton_converges() -> None:

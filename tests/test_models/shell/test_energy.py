@@ -230,8 +230,10 @@ def test_collapsed_edges_and_faces_stay_finite() -> None:
 def test_the_energy_follows_a_closing_fold_from_solve_start_to_solve_start() -> None:
     """``follow_hinges`` takes each hinge angle on the branch nearest to the last reference:
     a fold closed in steps of 0.3 rad (below pi each) from a bend angle of 2.6 to 3.5 rad ends
-    on the reference 3.5 (not 3.5 - 2 pi), and W_B is ``k_B w theta^2`` there; the references
-    are checkpointable (copy out, set back; a wrong shape refused naming them)."""
+    on the reference 3.5 (not 3.5 - 2 pi), and W_B is ``k_B w theta^2`` there (no fold
+    contact); the references are checkpointable (copy out, set back; a wrong shape refused
+    naming them). With the fold contact on, that state is a fold closed through itself:
+    +inf, and its hinge's four vertices are the blocked ones."""
     from models.shell.hinge_angle import hinge_angles
     from models.shell.topology import ShellTopology
 
@@ -241,7 +243,8 @@ def test_the_energy_follows_a_closing_fold_from_solve_start_to_solve_start() -> 
 
     topo = ShellTopology.from_faces(np.array([[0, 1, 2], [1, 0, 3]]), 4)
     rest = RestState.from_positions(topo, fold(0.0))
-    energy = ShellEnergy(topo, rest, ShellParams(k_L=0.0, k_B=2.0, k_P=0.0, k_F=0.0))
+    energy = ShellEnergy(topo, rest, ShellParams(k_L=0.0, k_B=2.0, k_P=0.0, k_F=0.0,
+                                                 fold_contact=0.0))
     assert energy.hinge_branch is None
     for theta in (2.6, 2.9, 3.2, 3.5):
         energy.follow_hinges(fold(theta))
@@ -257,3 +260,11 @@ def test_the_energy_follows_a_closing_fold_from_solve_start_to_solve_start() -> 
     assert energy.value(fold(3.5)) == pytest.approx(w * 3.5 ** 2, rel=1e-12)
     with pytest.raises(InputError, match="hinge branch"):
         energy.set_hinge_branch(np.zeros(3))
+    assert energy.blocked_vertices(fold(3.5)).size == 0  # no contact: nothing blocked
+    touching = ShellEnergy(topo, rest, ShellParams(k_L=0.0, k_B=2.0, k_P=0.0, k_F=0.0))
+    touching.set_hinge_branch(branch)
+    assert touching.value(fold(3.5)) == np.inf
+    assert np.array_equal(touching.blocked_vertices(fold(3.5)), [0, 1, 2, 3])
+    assert touching.blocked_vertices(fold(3.0)).size == 0
+    with pytest.raises(InputError, match="fold_gap"):
+        ShellParams(fold_gap=4.0)

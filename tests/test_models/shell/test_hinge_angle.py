@@ -334,3 +334,44 @@ def test_a_fold_followed_past_pi_keeps_a_smooth_growing_energy(rng) -> None:
     assert rho.sum() == pytest.approx(w[0] * (np.pi + 1e-3) ** 2, rel=1e-9)
     with pytest.raises(InputError, match="branch"):
         hinge_bending(across, ONE, theta0, w, branch=np.zeros(2))
+
+
+def test_the_fold_contact_holds_a_closing_fold_at_its_faces_touching(rng) -> None:
+    """``contact``: nothing changes (bit for bit) while ``pi - |theta| >= contact_gap``; in the
+    gap each hinge pays ``c w b(pi - |theta|)`` on top of its bending (both fold signs), with
+    gradient and Hessian passing Taylor tests there, and +inf once the fold has closed past
+    flat-on-flat on its followed branch (a line search cannot tunnel through)."""
+    rest = folded_hinge(0.0, skew=0.2)
+    theta0, w = hinge_angles(rest, ONE), hinge_weights(rest, ONE)
+    open_fold = folded_hinge(2.9 / 2, skew=0.2)
+    a = hinge_bending(open_fold, ONE, theta0, w, order=2, contact=3.0)
+    b = hinge_bending(open_fold, ONE, theta0, w, order=2)
+    assert a.value == b.value and a.grad is not None and b.grad is not None
+    assert np.array_equal(a.grad, b.grad) and np.array_equal(a.blocks, b.blocks)
+    for sign in (1.0, -1.0):
+        theta = sign * (np.pi - 0.04)
+        x = folded_hinge(theta / 2, skew=0.2)
+        gap, d_hat = 0.04, 0.1
+        barrier = -(gap - d_hat) ** 2 * np.log(gap / d_hat)
+        ev = hinge_bending(x, ONE, theta0, w, order=0, contact=3.0, contact_gap=d_hat)
+        assert ev.value == pytest.approx(w[0] * theta ** 2 + 3.0 * w[0] * barrier, rel=1e-9)
+    near = folded_hinge((np.pi - 0.04) / 2, skew=0.2)
+    pattern = StencilPattern.from_stencils([ONE], 4)
+    ev = hinge_bending(near, ONE, theta0, w, order=2, contact=3.0)
+    d = rng.standard_normal(near.shape)
+    hd = assemble(pattern, [(pattern.maps[0], ev.blocks)]) @ d.ravel()
+    eps = 1e-5 * EPS_STEPS
+    r1, r2 = [], []
+    for e in eps:
+        moved = hinge_bending(near + e * d, ONE, theta0, w, order=1, contact=3.0)
+        r1.append(abs(moved.value - ev.value - e * ev.grad @ d.ravel()))
+        r2.append(np.abs(moved.grad - ev.grad - e * hd).max())
+    s1, s2 = slope(eps, np.array(r1)), slope(eps, np.array(r2))
+    print(f"fold contact Taylor at a gap of 0.04 rad: slopes {s1:.3f} {s2:.3f}")
+    assert 1.8 <= s1 <= 2.2 and 1.8 <= s2 <= 2.2
+    through = folded_hinge((np.pi + 0.05) / 2, skew=0.2)  # closed 0.05 rad past pi
+    closed = hinge_bending(through, ONE, theta0, w, order=0, contact=3.0,
+                           branch=np.array([np.pi]))
+    assert closed.value == np.inf
+    with pytest.raises(InputError, match="fold_contact"):
+        hinge_bending(near, ONE, theta0, w, contact=-1.0)

@@ -140,7 +140,8 @@ def admissible_start(energy: ShellEnergy, x0: np.ndarray, anchor: np.ndarray
     A start that is admissible is returned unchanged (the same array).
 
     Raises:
-        SolverError: a stencil is blocked even at the anchor (degenerate target).
+        SolverError: a stencil is blocked even at the anchor (a degenerate target face, or a
+            fold whose followed angle differs from the target's by more than pi).
 
     """
     verts = energy.blocked_vertices(x0)
@@ -153,8 +154,10 @@ def admissible_start(energy: ShellEnergy, x0: np.ndarray, anchor: np.ndarray
         verts = energy.blocked_vertices(x)
         if verts.size == 0:
             return x, int(np.any(x != x0, axis=1).sum())
-    raise SolverError(f"shell warm start: vertex {int(verts[0])} is on a face turned over or a "
-                      f"fold closed through itself even at the target (degenerate target?)")
+    raise SolverError(f"shell warm start: vertex {int(verts[0])} stays on a face turned over or "
+                      f"a fold closed through itself even when pulled back onto the target (a "
+                      f"degenerate target face, or a fold turned by more than half a turn from "
+                      f"the target's hinge)")
 
 
 def settled(shell: Shell, x0: np.ndarray) -> bool:

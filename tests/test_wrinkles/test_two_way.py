@@ -136,7 +136,7 @@ def test_admissible_start_refuses_a_degenerate_target() -> None:
     y = p.copy()
     y[24] = y[25]  # faces around the edge 24-25 collapse onto a segment
     energy.set_target(y)
-    with pytest.raises(SolverError, match="turned over .* even at the target"):
+    with pytest.raises(SolverError, match="turned over .* even when pulled back onto the target"):
         admissible_start(energy, y, y)
 
 

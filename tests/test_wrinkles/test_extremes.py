@@ -412,11 +412,11 @@ def test_shell_sliver_exact_hessian_limit():
 
 
 def test_shell_sliver_without_flip_barrier_stagnates():
-    """The cause, pinned: with ``k_F = 0`` (the draft's energy) the q = 2.3e-3 sliver is pulled
-    onto its zero-area singularity (s = 2.6e-8, ||g|| = 4.9e6, W = 40.08 vs 0.8645 with the
-    barrier) and the solve stops by the stagnation test (measured 39-41 iterations), naming the
-    sliver, with W never increasing and x finite."""
-    energy, x0 = shell_case(ShellParams(k_F=0.0), levels=2, flatness=1e-3)
+    """The cause, pinned: with ``k_F = 0`` and no fold contact (the draft's energy) the
+    q = 2.3e-3 sliver is pulled onto its zero-area singularity (s = 2.6e-8, ||g|| = 4.9e6,
+    W = 40.08 vs 0.8645 with the barrier) and the solve stops by the stagnation test
+    (measured 39-41 iterations), naming the sliver, with W never increasing and x finite."""
+    energy, x0 = shell_case(ShellParams(k_F=0.0, fold_contact=0.0), levels=2, flatness=1e-3)
     with pytest.raises(ShellSolveError) as info:
         ShellNewtonSolver(energy, ShellNewtonOptions(rtol=1e-8, max_iterations=100)
                           ).minimize(x0)

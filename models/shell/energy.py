@@ -183,7 +183,8 @@ class ShellEval:
         penalty_factor: G (3 c, 3 n) when penalty_hessian == "low_rank" and order 2, else None.
         terms: Energy of each active term: keys among "membrane_edge", "membrane_area",
             "bending", "penalty", "flip_barrier" (stiffness included; the barrier is +inf when
-            a face is collapsed or turned over).
+            a face is collapsed or turned over, the bending with its fold contact when a fold
+            has closed through itself).
         elements: Energy of each stencil of each active term (same keys; edges, faces,
             hinges, clusters or barrier faces in the order the energy holds them).
 

@@ -386,11 +386,10 @@ class ShellEnergy:
         Empty when neither is on or nothing is blocked.
         """
         xc = check_positions(x, self.n_vertices)
+        barriers = ("flip_barrier", "bending") if self.params.fold_contact > 0.0 \
+            else ("flip_barrier",)
         blocked = [np.zeros(0, dtype=np.int64)]
-        for term in self._terms:
-            if term.name not in ("flip_barrier", "bending") or \
-                    (term.name == "bending" and self.params.fold_contact == 0.0):
-                continue
+        for term in (t for t in self._terms if t.name in barriers):
             ev = term.evaluate(xc, 0, self.params.hessian_mode, None,
                                self._schedules.get(term.name))
             if np.isfinite(ev.value) or ev.element_values is None:

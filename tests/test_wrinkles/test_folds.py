@@ -21,7 +21,7 @@ from wrinkles.runner import prepare, run_frame, run_frames, save_frame
 from wrinkles.scene import load_scene, with_frames
 
 
-def test_the_compressed_bar_folds_past_pi_converges_and_resumes_on_the_fold(tmp_path):
+def test_the_compressed_bar_folds_shut_converges_and_resumes_on_the_fold(tmp_path):
     """Frames 1-8 converge; after frame 7 a fold is held shut at its faces touching (its
     followed angle within the contact gap of pi, not past it); a run resumed from frame 7's
     checkpoint (which carries the hinges' references) takes frame 8 to the same shell as the
@@ -49,7 +49,7 @@ def test_the_compressed_bar_folds_past_pi_converges_and_resumes_on_the_fold(tmp_
                          lambda line: None)
     assert resumed.shell is not None and len(resumed.records) == 8
     assert resumed.records[-1].details["shell_converged"]
-    gap = float(np.abs(resumed.shell.x - shell.x).max())
-    print(f"frame 8, resumed against straight: max |dx| = {gap:.2e} m")
+    apart = float(np.abs(resumed.shell.x - shell.x).max())
+    print(f"frame 8, resumed against straight: max |dx| = {apart:.2e} m")
     # the multigrid path resumes to the solver's tolerance, not bit for bit
-    assert gap < 1e-5
+    assert apart < 1e-5

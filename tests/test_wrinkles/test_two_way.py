@@ -122,6 +122,31 @@ def test_admissible_start_moves_only_the_fold_and_newton_converges() -> None:
           f"Newton {report.iterations} iterations, W = {report.energy:.6e}")
 
 
+def test_admissible_start_opens_a_fold_carried_through_itself() -> None:
+    """Fold contact: a two-triangle fold followed to 3.1 rad and carried to 3.3 (through
+    itself, W = +inf) is pulled back towards its flat target until it is open again: the two
+    wing vertices move (the edge's two sit on the target), each offset halved a whole number
+    of times, and W is finite."""
+    def fold(theta: float) -> np.ndarray:
+        c, s = np.cos(theta / 2), np.sin(theta / 2)
+        return np.array([[0.0, 0, 0], [1, 0, 0], [0.7, c, -s], [0.3, -c, -s]])
+
+    topo = ShellTopology.from_faces(np.array([[0, 1, 2], [1, 0, 3]]), 4)
+    flat = fold(0.0)
+    energy = ShellEnergy(topo, RestState.from_positions(topo, flat),
+                         ShellParams(k_L=0.0, k_B=1.0, k_P=0.0, k_F=0.0))
+    energy.follow_hinges(fold(3.1))
+    x0 = fold(3.1)
+    x0[3] = fold(3.3)[3]  # the second wing carried through the first
+    assert energy.value(x0) == np.inf
+    assert np.array_equal(energy.blocked_vertices(x0), [0, 1, 2, 3])
+    x, moved = admissible_start(energy, x0, flat)
+    assert np.isfinite(energy.value(x)) and energy.blocked_vertices(x).size == 0
+    assert moved == 2 and np.array_equal(x[:2], flat[:2])
+    t = np.linalg.norm(x - flat, axis=1) / np.linalg.norm(x0 - flat, axis=1)
+    assert np.all(np.abs(np.log2(t[t > 0]) - np.round(np.log2(t[t > 0]))) < 1e-12)
+
+
 def test_admissible_start_keeps_an_admissible_start() -> None:
     """An admissible start is handed back as the same array (one-way runs unchanged)."""
     p, energy = plate_energy()

@@ -62,12 +62,19 @@ def unconverged_frames(frames: list[dict[str, Any]]) -> list[int]:
             if r.get("details", {}).get("shell_converged") is False]
 
 
+def self_intersecting_frames(frames: list[dict[str, Any]]) -> list[int]:
+    """Return the frames whose shell passes through itself (``shell_self_intersections``)."""
+    return [int(r["frame"]) for r in frames
+            if r.get("details", {}).get("shell_self_intersections", 0) > 0]
+
+
 def summary_figure(summary: dict[str, Any], name: str, width: float = 11.0,
                    height: float = 8.0) -> Any:
     """Draw the four panels of :func:`plot_run` into a new figure (``name``: fallback title).
 
     Frames whose shell solve stopped above its tolerance are marked with a red cross on the
-    shell's iteration curve, labelled "shell NOT converged".
+    shell's iteration curve, labelled "shell NOT converged"; frames whose shell passes through
+    itself with an orange ring, labelled "shell self-intersecting". The title counts both.
     """
     import matplotlib
 
@@ -96,6 +103,11 @@ def summary_figure(summary: dict[str, Any], name: str, width: float = 11.0,
     if stopped.any():
         ax.plot(k[stopped], series(frames, "shell_iterations")[stopped], "x", color="red",
                 markersize=10, markeredgewidth=2, label="shell NOT converged")
+    crossed = np.isin(k, self_intersecting_frames(frames))
+    if crossed.any():
+        ax.plot(k[crossed], series(frames, "shell_iterations")[crossed], "o", color="orange",
+                markerfacecolor="none", markersize=14, markeredgewidth=2,
+                label="shell self-intersecting")
     ax.set_ylabel("iterations per frame")
     ax.legend(fontsize=7)
     ax = axes[1, 0]
@@ -119,6 +131,8 @@ def summary_figure(summary: dict[str, Any], name: str, width: float = 11.0,
     status = summary.get("run", {}).get("status", "?")
     stopped_count = len(unconverged_frames(frames))
     status += f"; shell NOT converged in {stopped_count}" if stopped_count else ""
+    crossed_count = len(self_intersecting_frames(frames))
+    status += f"; shell self-intersecting in {crossed_count}" if crossed_count else ""
     fig.suptitle(f"{title} ({len(frames)} frames, {status})")
     fig.tight_layout()
     return fig

@@ -130,7 +130,9 @@ class FrameRecord:
         Static scenes show the load parameter instead of a time. Frames with a shell add its
         Newton iterations and solve time and, when the shell Newton stopped at its
         ``max_iterations`` above its gradient tolerance (the frame is kept, ``summary.json``
-        says ``shell_converged: false``), ``NOT converged (|g| ... > ...)``; two-way frames add
+        says ``shell_converged: false``), ``NOT converged (|g| ... > ...)``, and when faces of
+        the shell pass through each other, ``SELF-INTERSECTING (<pairs> face pairs)``
+        (``shell_self_intersections``); two-way frames add
         ``coupling=<iterations>`` and, when the body/shell fixed point stopped at
         ``max_iterations`` above its tolerance, ``NOT converged (change ...)``.
         """
@@ -144,6 +146,9 @@ class FrameRecord:
             if self.details.get("shell_converged") is False:
                 line += (f" NOT converged (|g| {self.details['shell_grad_norm']:.1e} > "
                          f"{self.details['shell_tolerance']:.1e})")
+            if self.details.get("shell_self_intersections", 0) > 0:
+                line += (f" SELF-INTERSECTING ({self.details['shell_self_intersections']} face "
+                         f"pairs)")
         line += f"  wall={self.wall_time:7.3f} s"
         if "coupling_iterations" in self.details:
             line += f"  coupling={self.details['coupling_iterations']}"

@@ -72,3 +72,33 @@ def test_a_frame_whose_shell_stopped_above_its_tolerance_says_so(tmp_path):
     main = {"time": 0.25, "newton_iterations": 3, "energy": 1.0, "min_det_f": 0.9}
     done = make_record(1, {**main, **details, "shell_converged": True}, {}, 1.0)
     assert "NOT converged" not in done.progress_line(1, static=True)
+
+
+def test_a_frame_whose_shell_passes_through_itself_says_so(tmp_path):
+    """The default scene's first frame has no self-intersection (``shell_self_intersections``
+    0 in ``summary.json``, nothing in its line); with one skin vertex pushed through the bar
+    and out of its far side the faces around it cross the far side's faces, and the progress
+    line says ``SELF-INTERSECTING`` with their count."""
+    import numpy as np
+
+    from models.shell.self_intersection import intersecting_faces
+
+    scene = with_frames(load_scene(REPO / "scenes" / "default.toml",
+                                   ["output.render=false", "output.xdmf=false"]), 1)
+    lines: list[str] = []
+    run = run_frames(prepare(scene, tmp_path, MPI.COMM_WORLD), lines.append)
+    details = run.records[0].details
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["frames"][0]["details"]["shell_self_intersections"] == 0
+    assert "SELF-INTERSECTING" not in lines[0]
+    shell = run.shell
+    assert shell is not None
+    x = shell.x.copy()
+    top = int(np.argmax(x[:, 2]))
+    x[top, 2] = 2 * x[:, 2].min() - x[top, 2]  # mirrored below the bar's bottom
+    pairs = len(intersecting_faces(x, shell.topology.faces))
+    assert pairs >= 6  # each face around the vertex crosses the bottom at least once
+    record = make_record(1, {"time": 0.25, "newton_iterations": 3, "energy": 1.0,
+                             "min_det_f": 0.9, **details, "shell_self_intersections": pairs},
+                         {}, 1.0)
+    assert f"SELF-INTERSECTING ({pairs} face pairs)" in record.progress_line(1, static=True)

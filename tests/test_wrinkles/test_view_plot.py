@@ -101,6 +101,32 @@ def test_plot_marks_the_frames_whose_shell_stopped_above_its_tolerance(sofa):
     plt.close("all")
 
 
+def test_plot_marks_the_frames_whose_shell_passes_through_itself(sofa):
+    """Orange rings on the shell's iteration curve at the frames with
+    ``shell_self_intersections > 0`` (the sofa's own frames have none), counted in the
+    title."""
+    import copy
+
+    import matplotlib.pyplot as plt
+
+    from wrinkles.plot import read_summary, self_intersecting_frames, summary_figure
+
+    summary = read_summary(sofa)
+    assert self_intersecting_frames(summary["frames"]) == []
+    assert all(r["details"]["shell_self_intersections"] == 0 for r in summary["frames"])
+    crossed = copy.deepcopy(summary)
+    for r in crossed["frames"][-2:]:
+        r["details"]["shell_self_intersections"] = 3
+    marked = [r["frame"] for r in crossed["frames"][-2:]]
+    assert self_intersecting_frames(crossed["frames"]) == marked
+    fig = summary_figure(crossed, "sofa")
+    (ring,) = [line for line in fig.axes[1].lines
+               if line.get_label() == "shell self-intersecting"]
+    assert list(ring.get_xdata()) == marked
+    assert fig.texts[0].get_text().endswith("; shell self-intersecting in 2)")
+    plt.close("all")
+
+
 def test_plot_of_a_directory_without_a_run_is_bad_input(tmp_path):
     proc = wrinkles("plot", str(tmp_path))
     assert proc.returncode == 1

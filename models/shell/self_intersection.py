@@ -17,16 +17,16 @@ ends on an edge of one of them). Coplanar overlaps (the system singular, ``|det|
 |d| |b - a| |c - a|``) are not counted: they have measure zero under motion. Faces sharing a
 vertex are never reported; their overlap is the barriers' business.
 
-Broad phase: ``T_i`` and ``T_j`` can only meet if their centroids are at most ``r_i + r_j``
-apart, ``r`` the largest centroid-to-corner distance; pairs within twice the largest ``r``
-come from a k-d tree (:class:`scipy.spatial.cKDTree`), the narrow phase runs over them.
+Broad phase: a uniform grid of cubes of the faces' median bounding-box size; each face is
+listed in every cube its bounding box meets, and a pair is tested once, in the lowest cube
+both boxes meet, only if the boxes overlap. The work and memory grow with the number of faces
+(a face of the median size meets at most 8 cubes), not with the spread of their sizes.
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 from meshes.errors import InputError
 
@@ -90,18 +90,54 @@ def _meet(x: np.ndarray, f: np.ndarray, g: np.ndarray) -> bool:  # pragma: no co
 
 
 @numba.njit(cache=True, nogil=True)
-def _narrow(x: np.ndarray, faces: np.ndarray, pairs: np.ndarray) -> np.ndarray:  # pragma: no cover
-    """Mask of the candidate pairs whose faces share no vertex and intersect."""
-    hit = np.zeros(pairs.shape[0], dtype=np.bool_)
-    for k in range(pairs.shape[0]):
-        f, g = faces[pairs[k, 0]], faces[pairs[k, 1]]
-        shared = False
-        for i in range(3):
-            for j in range(3):
-                shared |= f[i] == g[j]
-        if not shared and not _boxes_apart(x, f, g):
-            hit[k] = _meet(x, f, g)
-    return hit
+def _pair_test(x: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.ndarray, a: int,
+               b: int) -> bool:  # pragma: no cover - numba
+    """Whether faces ``a`` and ``b`` share no vertex, have overlapping boxes and intersect."""
+    f, g = faces[a], faces[b]
+    for i in range(3):
+        for j in range(3):
+            if f[i] == g[j]:
+                return False
+    for k in range(3):
+        if hi[a, k] < lo[b, k] or hi[b, k] < lo[a, k]:
+            return False
+    return _meet(x, f, g)
+
+
+@numba.njit(cache=True, nogil=True)
+def _grid_pairs(x: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                first_cube: np.ndarray, cube: np.ndarray, order: np.ndarray, keys: np.ndarray,
+                owner: np.ndarray) -> np.ndarray:  # pragma: no cover - numba
+    """Intersecting pairs from the grid's (cube, face) incidences ``cube``, ``owner``.
+
+    ``order`` sorts the incidences by cube id, ``keys`` are the sorted ids. A pair found in
+    several cubes is tested in the one whose index is the componentwise maximum of the two
+    faces' ``first_cube`` (the lowest cube both boxes meet).
+    """
+    out = np.empty((16, 2), dtype=np.int64)
+    count = 0
+    start = 0
+    while start < keys.size:
+        stop = start
+        while stop < keys.size and keys[stop] == keys[start]:
+            stop += 1
+        for p in range(start, stop):
+            for q in range(p + 1, stop):
+                a, b = owner[order[p]], owner[order[q]]
+                first = True
+                for k in range(3):
+                    if max(first_cube[a, k], first_cube[b, k]) != cube[order[p], k]:
+                        first = False
+                if not first or not _pair_test(x, faces, lo, hi, a, b):
+                    continue
+                if count == out.shape[0]:
+                    grown = np.empty((2 * count, 2), dtype=np.int64)
+                    grown[:count] = out
+                    out = grown
+                out[count, 0], out[count, 1] = min(a, b), max(a, b)
+                count += 1
+        start = stop
+    return out[:count]
 
 
 def intersecting_faces(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -129,14 +165,31 @@ def intersecting_faces(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
     if tri.shape[0] < 2:
         return np.zeros((0, 2), dtype=np.int64)
     corners = pts[tri]
-    centroid = corners.mean(axis=1)
-    reach = float(np.linalg.norm(corners - centroid[:, None], axis=2).max())
-    pairs = cKDTree(centroid).query_pairs(2.0 * reach, output_type="ndarray").astype(np.int64)
-    if pairs.shape[0] == 0:
-        return np.zeros((0, 2), dtype=np.int64)
-    pairs = np.sort(pairs, axis=1)
-    found = pairs[_narrow(pts, tri, pairs)]
+    lo, hi = corners.min(axis=1), corners.max(axis=1)
+    size = float(np.median((hi - lo).max(axis=1)))
+    if not size > 0.0:
+        size = float((hi - lo).max()) or 1.0
+    origin = lo.min(axis=0)
+    cell_lo = np.floor((lo - origin) / size).astype(np.int64)
+    cell_hi = np.floor((hi - origin) / size).astype(np.int64)
+    cell, owner = _cells(cell_lo, cell_hi)
+    dims = cell_hi.max(axis=0) + 1
+    keys = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    order = np.argsort(keys, kind="stable")
+    found = _grid_pairs(pts, tri, lo, hi, cell_lo, cell, order, keys[order], owner)
     return found[np.lexsort((found[:, 1], found[:, 0]))]
+
+
+def _cells(cell_lo: np.ndarray, cell_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every (cube, face) incidence: the cubes of each face's box and the face, (E, 3), (E,)."""
+    extent = cell_hi - cell_lo + 1
+    count = extent.prod(axis=1)
+    owner = np.repeat(np.arange(cell_lo.shape[0], dtype=np.int64), count)
+    rank = np.arange(owner.size, dtype=np.int64) - np.repeat(np.cumsum(count) - count, count)
+    ext = extent[owner]
+    offset = np.stack([rank // (ext[:, 1] * ext[:, 2]), (rank // ext[:, 2]) % ext[:, 1],
+                       rank % ext[:, 2]], axis=1)
+    return cell_lo[owner] + offset, owner
 
 
 __all__ = ["SINGULAR", "intersecting_faces"]

@@ -19,8 +19,9 @@ vertex are never reported; their overlap is the barriers' business.
 
 Broad phase: a uniform grid of cubes of the faces' median bounding-box size; each face is
 listed in every cube its bounding box meets, and a pair is tested once, in the lowest cube
-both boxes meet, only if the boxes overlap. The work and memory grow with the number of faces
-(a face of the median size meets at most 8 cubes), not with the spread of their sizes.
+both boxes meet, only if the boxes overlap. A face of the median size meets at most 8 cubes;
+where a few large faces would list more than :data:`MAX_CUBES_PER_FACE` cubes per face on
+average, the cube size is doubled until they do not, so the memory stays linear in the faces.
 """
 
 from __future__ import annotations
@@ -32,6 +33,9 @@ from meshes.errors import InputError
 
 SINGULAR: float = 1e-14
 """Relative determinant below which an edge is taken as parallel to a triangle's plane."""
+
+MAX_CUBES_PER_FACE: int = 16
+"""Average grid cubes per face above which the broad phase doubles its cube size."""
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -170,8 +174,12 @@ def intersecting_faces(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
     if not size > 0.0:
         size = float((hi - lo).max()) or 1.0
     origin = lo.min(axis=0)
-    cell_lo = np.floor((lo - origin) / size).astype(np.int64)
-    cell_hi = np.floor((hi - origin) / size).astype(np.int64)
+    while True:
+        cell_lo = np.floor((lo - origin) / size).astype(np.int64)
+        cell_hi = np.floor((hi - origin) / size).astype(np.int64)
+        if (cell_hi - cell_lo + 1).prod(axis=1).sum() <= MAX_CUBES_PER_FACE * tri.shape[0]:
+            break
+        size *= 2.0
     cell, owner = _cells(cell_lo, cell_hi)
     dims = cell_hi.max(axis=0) + 1
     keys = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
@@ -192,4 +200,4 @@ def _cells(cell_lo: np.ndarray, cell_hi: np.ndarray) -> tuple[np.ndarray, np.nda
     return cell_lo[owner] + offset, owner
 
 
-__all__ = ["SINGULAR", "intersecting_faces"]
+__all__ = ["MAX_CUBES_PER_FACE", "SINGULAR", "intersecting_faces"]

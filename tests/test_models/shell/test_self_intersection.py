@@ -88,6 +88,19 @@ def test_random_crumpled_surface_matches_every_pair_tested(rng: np.random.Genera
     assert len(found) > 0
 
 
+def test_a_few_huge_faces_keep_the_grid_small_and_the_answer_the_same() -> None:
+    """The folded plate plus a separate triangle 1000x its faces' size cutting through it:
+    the cube size doubles until the grid lists at most ``MAX_CUBES_PER_FACE`` cubes per face
+    on average, and the pairs are still those of testing every pair."""
+    x, faces = folded_plate(np.radians(200.0))
+    big = np.array([[-50.0, 0.31, -50.0], [60.0, 0.33, -50.0], [5.0, 0.35, 60.0]])
+    x = np.vstack([x, big])
+    faces = np.vstack([faces, [[len(x) - 3, len(x) - 2, len(x) - 1]]])
+    found = intersecting_faces(x, faces)
+    assert np.array_equal(found, brute_force(x, faces))
+    assert np.count_nonzero(found[:, 1] == len(faces) - 1) > 5
+
+
 def test_bad_input_is_refused_naming_it() -> None:
     x, faces = two_triangles(0.0)
     with pytest.raises(InputError, match="positions"):

@@ -4,7 +4,9 @@ The shell lives on every rank as plain numpy arrays (it is not a dolfinx mesh), 
 written by rank 0 with h5py: the rest mesh once (``/Mesh/geometry`` (n, 3) float64,
 ``/Mesh/topology`` (m, 3) int64, ``/Mesh/cluster_id`` (n,) int64, the cluster partition), then
 step ``k`` in its own file ``shell.steps/step_<k>.h5`` (:func:`wrinkles.output.step_file`):
-``/displacement`` (n, 3) = x - rest and ``/bending_energy_density`` (n,) [J/m^2]. A step is
+``/displacement`` (n, 3) = x - rest, ``/bending_energy_density`` (n,) [J/m^2] and
+``/self_intersecting`` (n,) (1 on the faces passing through another face, absent from series
+written before it; :meth:`wrinkles.shell_setup.Shell.intersecting_faces`). A step is
 written to ``.work/`` and moved to its place by ``os.replace``, then the XML is rewritten
 through a temporary file + ``os.replace`` (the body series does the same), so a run killed at
 any moment keeps every completed frame readable, and a frame costs O(its own size) in HDF5
@@ -13,8 +15,8 @@ resumed). On ``--resume`` the steps after
 the checkpoint are dropped (:func:`wrinkles.output.drop_steps_after`) and the rerun frames
 replace them.
 The XML is XDMF 3: one temporal collection of uniform
-grids, each referencing the one stored mesh and carrying the step's ``Time`` and its three
-node attributes; ParaView and ``meshio.xdmf.TimeSeriesReader`` read it.
+grids, each referencing the one stored mesh and carrying the step's ``Time`` and its node
+attributes; ParaView and ``meshio.xdmf.TimeSeriesReader`` read it.
 """
 
 from __future__ import annotations
@@ -43,8 +45,10 @@ from wrinkles.output import (
 from wrinkles.shell_setup import Shell
 
 SHELL_XDMF_NAME = "shell.xdmf"
-FIELD_TYPES: dict[str, str] = {"bending_energy_density": "Scalar", "displacement": "Vector"}
-"""Point fields of every step and their XDMF attribute type."""
+FIELD_TYPES: dict[str, str] = {"bending_energy_density": "Scalar", "displacement": "Vector",
+                               "self_intersecting": "Scalar"}
+"""Point fields of a step and their XDMF attribute type (the bending energy density first:
+ParaView colours by the first scalar it finds)."""
 
 
 @dataclass(frozen=True)
@@ -55,12 +59,23 @@ class ShellFrame:
         time: physical time [s].
         displacement: ``(n, 3)`` shell positions minus rest positions [m].
         bending_energy_density: ``(n,)`` per-vertex bending energy density [J/m^2].
+        self_intersecting: ``(n,)`` 1.0 at the vertices of the faces that pass through
+            another face, else 0.0; None where a series written before it has none.
 
     """
 
     time: float
     displacement: np.ndarray
     bending_energy_density: np.ndarray
+    self_intersecting: np.ndarray | None = None
+
+    def fields(self) -> dict[str, np.ndarray]:
+        """Return the stored point fields by name, in :data:`FIELD_TYPES` order (None left out)."""
+        values = {"bending_energy_density": self.bending_energy_density,
+                  "displacement": self.displacement,
+                  "self_intersecting": self.self_intersecting}
+        return {name: np.asarray(values[name], dtype=np.float64) for name in FIELD_TYPES
+                if values[name] is not None}
 
 
 def _item(parent: ET.Element, h5_name: str, path: str, shape: tuple[int, ...],
@@ -97,6 +112,7 @@ class ShellSeries:
         self.n, self.m = rest.shape[0], faces.shape[0]
         self.times: list[float] = []
         self.sources: list[tuple[str, str]] = []
+        self.fields: list[tuple[str, ...]] = []
         self._grids: list[str] = []
         if resume_after is not None:
             self._resume(np.asarray(rest, dtype=np.float64), resume_after)
@@ -118,20 +134,24 @@ class ShellSeries:
         if stored.shape != rest.shape or not np.array_equal(stored, rest):
             raise InputError(f"{self.path}: its rest mesh differs from this scene's shell")
         drop_steps_after(self.path, t)
-        self.times, self.sources = step_sources(self.path)
+        steps = _steps(self.path)
+        self.times = [time for time, _, _ in steps]
+        self.sources = [source for _, source, _ in steps]
+        self.fields = [names for _, _, names in steps]
         self._write_xml()
 
     def write(self, frame: ShellFrame) -> None:
         """Write one step into its own HDF5 file (work file + rename), then the XML."""
         dest = step_file(self.path, len(self.times))
         self.work.parent.mkdir(parents=True, exist_ok=True)
+        fields = frame.fields()
         with h5py.File(self.work, "w") as h5:
-            h5["displacement"] = np.asarray(frame.displacement, dtype=np.float64)
-            h5["bending_energy_density"] = np.asarray(frame.bending_energy_density,
-                                                      dtype=np.float64)
+            for name, values in fields.items():
+                h5[name] = values
         dest.parent.mkdir(parents=True, exist_ok=True)
         os.replace(self.work, dest)
         self.times.append(float(frame.time))
+        self.fields.append(tuple(fields))
         self.sources.append((dest.relative_to(self.path.parent).as_posix(), ""))
         self._write_xml()
 
@@ -146,7 +166,9 @@ class ShellSeries:
         _item(geo, h5, "/Mesh/geometry", (self.n, 3), "Float")
         ET.SubElement(grid, "Time", Value=repr(self.times[index]))
         source, prefix = self.sources[index]
-        for name, kind in FIELD_TYPES.items():  # the bending energy density first: ParaView
+        for name, kind in FIELD_TYPES.items():
+            if name not in self.fields[index]:
+                continue
             attr = ET.SubElement(grid, "Attribute", Name=name, AttributeType=kind, Center="Node")
             shape = (self.n, 3) if kind == "Vector" else (self.n,)
             _item(attr, source, f"{prefix}/{name}", shape, "Float")
@@ -169,22 +191,30 @@ class ShellSeries:
         write_text_atomic(self.path, text)
 
 
-def step_sources(path: Path) -> tuple[list[float], list[tuple[str, str]]]:
-    """Return the times and ``(file, group)`` of the steps of a shell series (its XML).
-
-    ``group`` is the HDF5 group holding the step's fields in ``file`` (``""`` for per-step
-    files, ``/Step_<k>`` for series written before them).
-    """
-    times, sources = [], []
+def _steps(path: Path) -> list[tuple[float, tuple[str, str], tuple[str, ...]]]:
+    """Return each step of a shell series (its XML): time, ``(file, group)``, field names."""
+    steps = []
     for grid in parse_xdmf(path).getroot().iter("Grid"):
         time = grid.find("Time")
         item = grid.find("Attribute[@Name='displacement']/DataItem")
         if time is None or item is None or not item.text:
             continue
         name, _, dataset = item.text.partition(":")
-        times.append(float(time.get("Value", "0")))
-        sources.append((name.strip(), dataset.strip().rsplit("/", 1)[0]))
-    return times, sources
+        fields = tuple(attr.get("Name", "") for attr in grid.iter("Attribute")
+                       if attr.get("Name") in FIELD_TYPES)
+        steps.append((float(time.get("Value", "0")),
+                      (name.strip(), dataset.strip().rsplit("/", 1)[0]), fields))
+    return steps
+
+
+def step_sources(path: Path) -> tuple[list[float], list[tuple[str, str]]]:
+    """Return the times and ``(file, group)`` of the steps of a shell series (its XML).
+
+    ``group`` is the HDF5 group holding the step's fields in ``file`` (``""`` for per-step
+    files, ``/Step_<k>`` for series written before them).
+    """
+    steps = _steps(path)
+    return [time for time, _, _ in steps], [source for _, source, _ in steps]
 
 
 def read_shell_series(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray,
@@ -202,8 +232,10 @@ def read_shell_series(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     frames = []
     for t, (name, group) in zip(times, sources, strict=True):
         with h5py.File(path.parent / name, "r") as h5:
+            crossing = (h5[f"{group}/self_intersecting"][...]
+                        if f"{group}/self_intersecting" in h5 else None)
             frames.append(ShellFrame(t, h5[f"{group}/displacement"][...],
-                                     h5[f"{group}/bending_energy_density"][...]))
+                                     h5[f"{group}/bending_energy_density"][...], crossing))
     return rest, faces, cluster_id, frames
 
 
@@ -217,7 +249,9 @@ Writer = Callable[[int, float], None]
 
 def shell_frame(shell: Shell, t: float) -> ShellFrame:
     """Return the output fields of the current state."""
-    return ShellFrame(t, shell.x - shell.rest, shell.energy.bending_density(shell.x))
+    crossing = np.zeros(shell.rest.shape[0])
+    crossing[shell.topology.faces[shell.intersecting_faces().ravel()].ravel()] = 1.0
+    return ShellFrame(t, shell.x - shell.rest, shell.energy.bending_density(shell.x), crossing)
 
 
 def make_writer(shell: Shell, out: Path, comm: MPI.Comm, writes: Callable[[int], bool],

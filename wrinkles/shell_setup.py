@@ -48,6 +48,7 @@ from models.embedding.subdivision import Subdivision, SubdivisionOptions, subdiv
 from models.materials import Material
 from models.shell.energy import ShellEnergy, ShellParams
 from models.shell.rest import RestState, vertex_normals
+from models.shell.self_intersection import intersecting_faces
 from models.shell.stiffness import ShellMaterial, shell_stiffness
 from models.shell.topology import ShellTopology
 from solvers.body import Body
@@ -446,6 +447,8 @@ class Shell:
     coupling: PenaltyCoupling | None = None
     start_repaired: int = 0
     hierarchy: ShellHierarchy | None = None
+    _crossing: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False,
+                                                            compare=False)
 
     def __post_init__(self) -> None:
         if self.force.shape != self.rest.shape:
@@ -455,6 +458,16 @@ class Shell:
     def params(self) -> ShellParams:
         """The stiffnesses in use."""
         return self.energy.params
+
+    def intersecting_faces(self) -> np.ndarray:
+        """Face pairs of the current shell ``x`` that pass through each other, (P, 2).
+
+        :func:`models.shell.self_intersection.intersecting_faces`, computed once per state
+        (the frame's record and its output step ask for the same ``x``).
+        """
+        if self._crossing is None or not np.array_equal(self._crossing[0], self.x):
+            self._crossing = (self.x.copy(), intersecting_faces(self.x, self.topology.faces))
+        return self._crossing[1]
 
     def set_target(self, y: np.ndarray) -> None:
         """Move the penalty target of the energy and of a split solver's local energies."""

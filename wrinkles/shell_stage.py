@@ -28,7 +28,6 @@ from models.backend import MPI
 from models.embedding.embedding import apply_to_function
 from models.shell.energy import ShellEnergy
 from models.shell.rest import vertex_normals
-from models.shell.self_intersection import intersecting_faces
 from solvers.body import Body
 from solvers.decomposition.split_newton import SplitNewtonSolver
 from solvers.shell_newton import (
@@ -230,7 +229,7 @@ def shell_record(shell: Shell, report: ShellSolveReport) -> StageRecord:
     """Return the frame's shell numbers for the summary (rank-independent).
 
     ``shell_self_intersections`` counts the face pairs passing through each other
-    (:func:`models.shell.self_intersection.intersecting_faces`): the energy has no contact
+    (:meth:`wrinkles.shell_setup.Shell.intersecting_faces`): the energy has no contact
     between faces that share no hinge, so a fold pressed onto its neighbours can.
     """
     ev = shell.energy.evaluate(shell.x, order=0)
@@ -244,7 +243,7 @@ def shell_record(shell: Shell, report: ShellSolveReport) -> StageRecord:
             "shell_phase_space": shell.solver.phase_space_in_use, "wrinkle_amplitude": amplitude,
             "wrinkle_amplitude_rel": amplitude / shell.edge_length,
             "max_distance_to_target": total,
-            "shell_self_intersections": len(intersecting_faces(shell.x, shell.topology.faces)),
+            "shell_self_intersections": len(shell.intersecting_faces()),
             "shell_time_evaluate": report.time_evaluate,
             "shell_time_factorize": report.time_factorize,
             "shell_time_solve": report.time_solve, "shell_time_total": report.time_total}

@@ -162,9 +162,7 @@ def export_shell(run: Path, folder: Path) -> Path | None:
     entries = []
     for k, frame in enumerate(frames):
         name = f"shell_{k:04d}.vtu"
-        data: dict[str, Any] = {"displacement": frame.displacement,
-                                "bending_energy_density": frame.bending_energy_density,
-                                "cluster_id": np.asarray(cluster)}
+        data: dict[str, Any] = {**frame.fields(), "cluster_id": np.asarray(cluster)}
         meshio.write(folder / name, meshio.Mesh(rest + frame.displacement, [("triangle", faces)],
                                                 point_data=data))
         entries.append((frame.time, name))

@@ -112,3 +112,31 @@ def test_resume_may_change_the_solver_threads(straight, tmp_path):
               for frames in (r_frames, g_frames)]
     print(f"shell energies straight {energy[0]}, resumed on two threads {energy[1]}")
     np.testing.assert_allclose(energy[1], energy[0], rtol=1e-6)
+
+
+def test_a_series_written_before_the_self_intersection_field_resumes_with_it(tmp_path):
+    """A series whose steps carry no ``self_intersecting`` (written before it existed) is
+    continued: its steps keep their two fields in the XML, the new step has three, and both
+    readers (ours and meshio's) read every step, ours giving None for the old ones."""
+    from meshes.shells import grid_plate
+    from wrinkles.shell_output import ShellFrame, ShellSeries
+
+    rest, faces = grid_plate(3, 3)
+    n = rest.shape[0]
+    path = tmp_path / "shell.xdmf"
+    old = ShellSeries(path, rest, faces, np.zeros(n, dtype=np.int64))
+    for t in (0.0, 1.0):
+        old.write(ShellFrame(t, np.full((n, 3), t), np.full(n, t)))
+    resumed = ShellSeries(path, rest, faces, np.zeros(n, dtype=np.int64), resume_after=1.0)
+    crossing = np.arange(n) % 2.0
+    resumed.write(ShellFrame(2.0, np.full((n, 3), 2.0), np.full(n, 2.0), crossing))
+    grids = [g for g in ET.parse(path).getroot().iter("Grid") if g.find("Time") is not None]
+    names = [[a.get("Name") for a in g.iter("Attribute")] for g in grids]
+    assert [len(x) for x in names] == [3, 3, 4]  # cluster_id on every step
+    assert "self_intersecting" in names[2] and "self_intersecting" not in names[0]
+    _, _, _, frames = read_shell_series(path)
+    assert [f.self_intersecting is None for f in frames] == [True, True, False]
+    assert np.array_equal(frames[2].self_intersecting, crossing)
+    _, _, steps = read_series(path)
+    assert [t for t, _ in steps] == [0.0, 1.0, 2.0]
+    assert np.array_equal(steps[2][1]["self_intersecting"], crossing)

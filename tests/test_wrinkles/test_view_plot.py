@@ -169,3 +169,36 @@ def test_view_script_runs_in_pvpython(sofa):
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
     assert (sofa / "view.png").stat().st_size > 10_000
+
+
+@pytest.mark.skipif(shutil.which("pvpython") is None or shutil.which("xvfb-run") is None,
+                    reason="ParaView (apt-get install paraview xvfb) not installed")
+def test_view_script_marks_self_intersecting_faces_in_pvpython(tmp_path):
+    """A shell series whose last step has faces flagged ``self_intersecting`` (a plate folded
+    through itself): the view script shows them in orange and says so; ParaView writes the
+    picture."""
+    import numpy as np
+
+    from meshes.shells import grid_plate
+    from models.shell.self_intersection import intersecting_faces
+    from wrinkles.shell_output import ShellFrame, ShellSeries
+
+    rest, faces = grid_plate(10, 10)
+    x = rest.copy()
+    right = x[:, 0] > 0.5 + 1e-12
+    d = x[right, 0] - 0.5
+    x[right, 0], x[right, 2] = 0.5 + d * np.cos(3.5), d * np.sin(3.5) + 0.1
+    x[right, 1] += 0.037
+    crossing = np.zeros(len(x))
+    crossing[faces[intersecting_faces(x, faces).ravel()].ravel()] = 1.0
+    assert crossing.sum() > 10
+    series = ShellSeries(tmp_path / "shell.xdmf", rest, faces, np.zeros(len(x), dtype=np.int64))
+    series.write(ShellFrame(0.0, np.zeros_like(x), np.full(len(x), 1e-3), np.zeros(len(x))))
+    series.write(ShellFrame(1.0, x - rest, np.full(len(x), 1e-3), crossing))
+    proc = wrinkles("view", str(tmp_path))
+    assert proc.returncode == 0, proc.stderr
+    run = subprocess.run(["xvfb-run", "-a", "pvpython", str(tmp_path / "view.py")],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "self-intersecting faces at the last step" in run.stdout
+    assert (tmp_path / "view.png").stat().st_size > 10_000

@@ -466,7 +466,8 @@ class Shell:
         (the frame's record and its output step ask for the same ``x``).
         """
         if self._crossing is None or not np.array_equal(self._crossing[0], self.x):
-            self._crossing = (self.x.copy(), intersecting_faces(self.x, self.topology.faces))
+            self._crossing = (self.x.copy(), intersecting_faces(
+                self.x, self.topology.faces, self.params.threads))
         return self._crossing[1]
 
     def set_target(self, y: np.ndarray) -> None:

@@ -26,6 +26,8 @@ average, the cube size is doubled until they do not, so the memory stays linear 
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numba
 import numpy as np
 
@@ -70,21 +72,29 @@ def _crosses(x: np.ndarray, p: int, q: int, a: int, b: int,
 
 
 @numba.njit(cache=True, nogil=True)
-def _boxes_apart(x: np.ndarray, f: np.ndarray, g: np.ndarray) -> bool:  # pragma: no cover
-    """Whether the bounding boxes of the faces ``f`` and ``g`` are disjoint."""
-    for k in range(3):
-        lo_f = min(x[f[0], k], x[f[1], k], x[f[2], k])
-        hi_f = max(x[f[0], k], x[f[1], k], x[f[2], k])
-        lo_g = min(x[g[0], k], x[g[1], k], x[g[2], k])
-        hi_g = max(x[g[0], k], x[g[1], k], x[g[2], k])
-        if hi_f < lo_g or hi_g < lo_f:
-            return True
-    return False
+def _one_side(x: np.ndarray, f: np.ndarray, g: np.ndarray) -> bool:  # pragma: no cover
+    """Whether the corners of ``f`` lie strictly on one side of the plane of ``g``."""
+    e0, e1, e2 = _sub(x, g[1], g[0])
+    h0, h1, h2 = _sub(x, g[2], g[0])
+    n0, n1, n2 = e1 * h2 - e2 * h1, e2 * h0 - e0 * h2, e0 * h1 - e1 * h0
+    above = below = 0
+    for i in range(3):
+        d0, d1, d2 = _sub(x, f[i], g[0])
+        side = n0 * d0 + n1 * d1 + n2 * d2
+        above += side > 0.0
+        below += side < 0.0
+    return above == 3 or below == 3
 
 
 @numba.njit(cache=True, nogil=True)
 def _meet(x: np.ndarray, f: np.ndarray, g: np.ndarray) -> bool:  # pragma: no cover - numba
-    """Whether an edge of face ``f`` crosses face ``g`` or one of ``g`` crosses ``f``."""
+    """Whether an edge of face ``f`` crosses face ``g`` or one of ``g`` crosses ``f``.
+
+    Pairs with one face strictly on one side of the other's plane are rejected first (no
+    edge of either can cross the other then).
+    """
+    if _one_side(x, f, g) or _one_side(x, g, f):
+        return False
     for i in range(3):
         if _crosses(x, f[i], f[(i + 1) % 3], g[0], g[1], g[2]):
             return True
@@ -94,45 +104,38 @@ def _meet(x: np.ndarray, f: np.ndarray, g: np.ndarray) -> bool:  # pragma: no co
 
 
 @numba.njit(cache=True, nogil=True)
-def _pair_test(x: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.ndarray, a: int,
-               b: int) -> bool:  # pragma: no cover - numba
-    """Whether faces ``a`` and ``b`` share no vertex, have overlapping boxes and intersect."""
-    f, g = faces[a], faces[b]
-    for i in range(3):
-        for j in range(3):
-            if f[i] == g[j]:
-                return False
-    for k in range(3):
-        if hi[a, k] < lo[b, k] or hi[b, k] < lo[a, k]:
-            return False
-    return _meet(x, f, g)
-
-
-@numba.njit(cache=True, nogil=True)
 def _grid_pairs(x: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                first_cube: np.ndarray, cube: np.ndarray, order: np.ndarray, keys: np.ndarray,
-                owner: np.ndarray) -> np.ndarray:  # pragma: no cover - numba
-    """Intersecting pairs from the grid's (cube, face) incidences ``cube``, ``owner``.
+                keys: np.ndarray, owner: np.ndarray, lowest: np.ndarray, begin: int,
+                end: int) -> np.ndarray:  # pragma: no cover - numba
+    """Intersecting pairs from the grid's (cube, face) incidences, sorted by cube id ``keys``.
 
-    ``order`` sorts the incidences by cube id, ``keys`` are the sorted ids. A pair found in
-    several cubes is tested in the one whose index is the componentwise maximum of the two
-    faces' ``first_cube`` (the lowest cube both boxes meet).
+    The cubes whose runs start in ``[begin, end)`` of the incidences are searched. A pair
+    found in several cubes is tested in the lowest cube both boxes meet: the one where, on
+    every axis, the cube is the lowest of one face or the other (``lowest``: bit ``k`` set
+    where the incidence's cube is its face's lowest along axis ``k``).
     """
     out = np.empty((16, 2), dtype=np.int64)
     count = 0
-    start = 0
-    while start < keys.size:
+    start = begin
+    while start < end:
         stop = start
         while stop < keys.size and keys[stop] == keys[start]:
             stop += 1
         for p in range(start, stop):
+            a = owner[p]
             for q in range(p + 1, stop):
-                a, b = owner[order[p]], owner[order[q]]
-                first = True
-                for k in range(3):
-                    if max(first_cube[a, k], first_cube[b, k]) != cube[order[p], k]:
-                        first = False
-                if not first or not _pair_test(x, faces, lo, hi, a, b):
+                b = owner[q]
+                if lowest[p] | lowest[q] != 7:
+                    continue
+                if (hi[a, 0] < lo[b, 0] or hi[b, 0] < lo[a, 0] or hi[a, 1] < lo[b, 1]
+                        or hi[b, 1] < lo[a, 1] or hi[a, 2] < lo[b, 2] or hi[b, 2] < lo[a, 2]):
+                    continue
+                f, g = faces[a], faces[b]
+                if (f[0] == g[0] or f[0] == g[1] or f[0] == g[2] or f[1] == g[0]
+                        or f[1] == g[1] or f[1] == g[2] or f[2] == g[0] or f[2] == g[1]
+                        or f[2] == g[2]):
+                    continue
+                if not _meet(x, f, g):
                     continue
                 if count == out.shape[0]:
                     grown = np.empty((2 * count, 2), dtype=np.int64)
@@ -144,12 +147,13 @@ def _grid_pairs(x: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.ndarray
     return out[:count]
 
 
-def intersecting_faces(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def intersecting_faces(x: np.ndarray, faces: np.ndarray, threads: int = 1) -> np.ndarray:
     """Return the face pairs ``(i, j)``, ``i < j``, that share no vertex and intersect.
 
     Args:
         x: (n, 3) vertex positions [m].
         faces: (F, 3) int vertex indices.
+        threads: Threads that search the grid's cubes (each a share of them).
 
     Returns:
         (P, 2) int64 array, rows sorted; empty (0, 2) for a surface free of
@@ -168,8 +172,7 @@ def intersecting_faces(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
         raise InputError(f"faces: expected (F, 3) indices below {pts.shape[0]}")
     if tri.shape[0] < 2:
         return np.zeros((0, 2), dtype=np.int64)
-    corners = pts[tri]
-    lo, hi = corners.min(axis=1), corners.max(axis=1)
+    lo, hi = _boxes(pts, tri)
     size = float(np.median((hi - lo).max(axis=1)))
     if not size > 0.0:
         size = float((hi - lo).max()) or 1.0
@@ -177,27 +180,69 @@ def intersecting_faces(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
     while True:
         cell_lo = np.floor((lo - origin) / size).astype(np.int64)
         cell_hi = np.floor((hi - origin) / size).astype(np.int64)
-        if (cell_hi - cell_lo + 1).prod(axis=1).sum() <= MAX_CUBES_PER_FACE * tri.shape[0]:
+        total = int((cell_hi - cell_lo + 1).prod(axis=1).sum())
+        if total <= MAX_CUBES_PER_FACE * tri.shape[0]:
             break
         size *= 2.0
-    cell, owner = _cells(cell_lo, cell_hi)
     dims = cell_hi.max(axis=0) + 1
-    keys = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
-    order = np.argsort(keys, kind="stable")
-    found = _grid_pairs(pts, tri, lo, hi, cell_lo, cell, order, keys[order], owner)
+    keys, owner, lowest = _incidences(cell_lo, cell_hi, dims, total)
+    order = np.argsort(keys)
+    keys, owner, lowest = keys[order], owner[order], lowest[order]
+    bounds = _run_bounds(keys, max(1, threads))
+
+    def search(k: int) -> np.ndarray:
+        return _grid_pairs(pts, tri, lo, hi, keys, owner, lowest, int(bounds[k]),
+                           int(bounds[k + 1]))
+
+    if len(bounds) > 2:
+        with ThreadPoolExecutor(len(bounds) - 1) as pool:
+            found = np.concatenate(list(pool.map(search, range(len(bounds) - 1))))
+    else:
+        found = search(0)
     return found[np.lexsort((found[:, 1], found[:, 0]))]
 
 
-def _cells(cell_lo: np.ndarray, cell_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Every (cube, face) incidence: the cubes of each face's box and the face, (E, 3), (E,)."""
-    extent = cell_hi - cell_lo + 1
-    count = extent.prod(axis=1)
-    owner = np.repeat(np.arange(cell_lo.shape[0], dtype=np.int64), count)
-    rank = np.arange(owner.size, dtype=np.int64) - np.repeat(np.cumsum(count) - count, count)
-    ext = extent[owner]
-    offset = np.stack([rank // (ext[:, 1] * ext[:, 2]), (rank // ext[:, 2]) % ext[:, 1],
-                       rank % ext[:, 2]], axis=1)
-    return cell_lo[owner] + offset, owner
+@numba.njit(cache=True, nogil=True)
+def _boxes(x: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """Lower and upper corners (F, 3) of each face's bounding box."""
+    lo, hi = np.empty((faces.shape[0], 3)), np.empty((faces.shape[0], 3))
+    for f in range(faces.shape[0]):
+        for k in range(3):
+            a, b, c = x[faces[f, 0], k], x[faces[f, 1], k], x[faces[f, 2], k]
+            lo[f, k], hi[f, k] = min(a, b, c), max(a, b, c)
+    return lo, hi
+
+
+@numba.njit(cache=True, nogil=True)
+def _incidences(cell_lo: np.ndarray, cell_hi: np.ndarray, dims: np.ndarray,
+                total: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """Every (cube, face) incidence: cube id (E,), face (E,) and lowest-cube bits (E,).
+
+    Bit ``k`` of the last is set where the cube is the face's lowest along axis ``k``.
+    """
+    keys = np.empty(total, dtype=np.int64)
+    owner = np.empty(total, dtype=np.int64)
+    lowest = np.empty(total, dtype=np.int64)
+    e = 0
+    for f in range(cell_lo.shape[0]):
+        for i in range(cell_lo[f, 0], cell_hi[f, 0] + 1):
+            for j in range(cell_lo[f, 1], cell_hi[f, 1] + 1):
+                for k in range(cell_lo[f, 2], cell_hi[f, 2] + 1):
+                    keys[e], owner[e] = (i * dims[1] + j) * dims[2] + k, f
+                    lowest[e] = ((i == cell_lo[f, 0]) + 2 * (j == cell_lo[f, 1])
+                                 + 4 * (k == cell_lo[f, 2]))
+                    e += 1
+    return keys, owner, lowest
+
+
+def _run_bounds(keys: np.ndarray, parts: int) -> np.ndarray:
+    """Split points of sorted ``keys`` into ``parts`` ranges of whole runs (first 0, last E)."""
+    cuts = [0]
+    for k in range(1, parts):
+        at = int(np.searchsorted(keys, keys[min(k * keys.size // parts, keys.size - 1)]))
+        if at > cuts[-1]:
+            cuts.append(at)
+    return np.array([*cuts, keys.size], dtype=np.int64)
 
 
 __all__ = ["MAX_CUBES_PER_FACE", "SINGULAR", "intersecting_faces"]

@@ -70,7 +70,7 @@ def read(script: str, path: Path) -> dict:
 
 @pytest.mark.parametrize(("name", "fields"), [
     ("body.xdmf", ["displacement", "velocity"]),
-    ("shell.xdmf", ["bending_energy_density", "cluster_id", "displacement"]),
+    ("shell.xdmf", ["bending_energy_density", "cluster_id", "displacement", "self_intersecting"]),
 ])
 def test_legacy_vtk_xdmf_reader_reads_every_step(run, name, fields):
     got = read(READ, run / name)

@@ -72,29 +72,8 @@ def _crosses(x: np.ndarray, p: int, q: int, a: int, b: int,
 
 
 @numba.njit(cache=True, nogil=True)
-def _one_side(x: np.ndarray, f: np.ndarray, g: np.ndarray) -> bool:  # pragma: no cover
-    """Whether the corners of ``f`` lie strictly on one side of the plane of ``g``."""
-    e0, e1, e2 = _sub(x, g[1], g[0])
-    h0, h1, h2 = _sub(x, g[2], g[0])
-    n0, n1, n2 = e1 * h2 - e2 * h1, e2 * h0 - e0 * h2, e0 * h1 - e1 * h0
-    above = below = 0
-    for i in range(3):
-        d0, d1, d2 = _sub(x, f[i], g[0])
-        side = n0 * d0 + n1 * d1 + n2 * d2
-        above += side > 0.0
-        below += side < 0.0
-    return above == 3 or below == 3
-
-
-@numba.njit(cache=True, nogil=True)
 def _meet(x: np.ndarray, f: np.ndarray, g: np.ndarray) -> bool:  # pragma: no cover - numba
-    """Whether an edge of face ``f`` crosses face ``g`` or one of ``g`` crosses ``f``.
-
-    Pairs with one face strictly on one side of the other's plane are rejected first (no
-    edge of either can cross the other then).
-    """
-    if _one_side(x, f, g) or _one_side(x, g, f):
-        return False
+    """Whether an edge of face ``f`` crosses face ``g`` or one of ``g`` crosses ``f``."""
     for i in range(3):
         if _crosses(x, f[i], f[(i + 1) % 3], g[0], g[1], g[2]):
             return True

@@ -19,7 +19,9 @@ per scene and code:
   on an idle core has CPU = wall) and wall time, and seconds per frame;
 * the process's total user + system CPU (``resource.getrusage`` of the child: set-up, JIT and
   output included);
-* the final shell energy and the frames whose shell solve did not converge;
+* the final shell energy, the most self-intersecting face pairs of any frame (``x-pairs``,
+  ``-`` for code that does not count them) and the frames whose shell solve did not
+  converge;
 * with ``--seeds N``: each scene run N times, with ``shell.imperfection_seed`` 0 (the key not
   passed, so earlier code runs it too) to N - 1; a wrinkle pattern is one of many nearly equal
   minima and the seed picks it, so a change is judged against the spread over the seeds (a
@@ -137,6 +139,7 @@ def summary_row(summary: dict[str, Any]) -> dict[str, Any]:
         "shell_energy": [d.get("shell_energy") for d in details],
         "unconverged": [f["frame"] for f, d in zip(frames, details, strict=True)
                         if d.get("shell_converged") is False],
+        "self_intersections": [d.get("shell_self_intersections") for d in details],
         "method": solver.get("method", "direct"), "threads": solver.get("threads", 1),
         "peak_memory_mb": max(summary.get("run", {}).get("peak_memory_mb") or [0.0]) or None}
 
@@ -158,7 +161,13 @@ def print_row(scene: str, label: str, r: dict[str, Any]) -> None:
           f"{total:>6} {failed:>6} "
           f"{shown:9.2f}{mark} {shown / n:8.2f} {r['frames_wall']:8.2f} {speedup} {memory} "
           f"{r['process_cpu']:8.2f} {_last_energy(r['shell_energy']):12.6e} "
-          f"{r['unconverged'] or ''}", flush=True)
+          f"{_most_pairs(r.get('self_intersections')):>7} {r['unconverged'] or ''}", flush=True)
+
+
+def _most_pairs(values: list[int | None] | None) -> str:
+    """The most self-intersecting face pairs of any frame; "-" where the code counts none."""
+    counted = [v for v in values or [] if v is not None]
+    return str(max(counted)) if counted else "-"
 
 
 def _last_energy(values: list[float | None] | None) -> float:
@@ -170,7 +179,7 @@ def _last_energy(values: list[float | None] | None) -> float:
 HEADER = (f"{'scene':>18} {'code':>8} {'np':>2} {'method':>9} {'thr':>3} {'frm':>3} "
           f"{'body':>6} {'its':>6} {'facts':>6} {'failed':>6} {'frames s':>10} {'s/frame':>8} "
           f"{'wall s':>8} {'speed':>6} {'mem MB':>7} {'proc CPU':>8} {'final W':>12} "
-          "unconverged")
+          f"{'x-pairs':>7} unconverged")
 
 
 def spread_table(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:

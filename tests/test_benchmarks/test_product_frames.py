@@ -15,7 +15,7 @@ def test_summary_row_counts_failed_factorisations_and_reads_the_cpu_time():
                "frames": [{"frame": 1, "wall_time": 2.0, "cpu_time": 3.0,
                            "newton_iterations": 9, "details": {
                    "shell_iterations": 4, "shell_factorizations": 7, "shell_energy": 0.5,
-                   "shell_converged": True}},
+                   "shell_converged": True, "shell_self_intersections": 3}},
                           {"frame": 2, "wall_time": 1.0, "cpu_time": 1.5, "details": {
                               "shell_iterations": 2, "shell_factorizations": 2,
                               "shell_energy": 0.25, "shell_converged": False}}]}
@@ -24,6 +24,7 @@ def test_summary_row_counts_failed_factorisations_and_reads_the_cpu_time():
     assert row["body_iterations"] == [9, 0]
     assert row["frames_cpu"] == 4.5 and row["frames_wall"] == 3.0
     assert row["unconverged"] == [2]
+    assert row["self_intersections"] == [3, None]  # the second frame's code counted none
     assert (row["method"], row["threads"]) == ("multigrid", 2)
     del summary["frames"][0]["cpu_time"]  # code that does not record it
     assert summary_row(summary)["frames_cpu"] is None

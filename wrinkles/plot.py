@@ -74,7 +74,7 @@ def summary_figure(summary: dict[str, Any], name: str, width: float = 11.0,
 
     Frames whose shell solve stopped above its tolerance are marked with a red cross on the
     shell's iteration curve, labelled "shell NOT converged"; frames whose shell passes through
-    itself with an orange ring, labelled "shell self-intersecting". The title counts both.
+    itself with a magenta ring, labelled "shell self-intersecting". The title counts both.
     """
     import matplotlib
 
@@ -105,7 +105,7 @@ def summary_figure(summary: dict[str, Any], name: str, width: float = 11.0,
                 markersize=10, markeredgewidth=2, label="shell NOT converged")
     crossed = np.isin(k, self_intersecting_frames(frames))
     if crossed.any():
-        ax.plot(k[crossed], series(frames, "shell_iterations")[crossed], "o", color="orange",
+        ax.plot(k[crossed], series(frames, "shell_iterations")[crossed], "o", color="magenta",
                 markerfacecolor="none", markersize=14, markeredgewidth=2,
                 label="shell self-intersecting")
     ax.set_ylabel("iterations per frame")

@@ -82,13 +82,20 @@ def scene_up(out: Path) -> str:
     return up if up in CAMERAS else "z"
 
 
+CROSSING_COLOUR = "magenta"
+"""Colour of the faces that pass through another face (as in ``wrinkles view`` and ``plot``;
+in neither colour map)."""
+
+
 def polydata(rest: np.ndarray, faces: np.ndarray, frame: ShellFrame) -> Any:
     """Return the deformed shell of one step as pyvista PolyData with its point fields."""
     import pyvista as pv
 
     cells = np.hstack([np.full((faces.shape[0], 1), 3), faces]).astype(np.int64).ravel()
     mesh = pv.PolyData(rest + frame.displacement, cells)
-    mesh.point_data["bending_energy_density"] = frame.bending_energy_density
+    for name, values in frame.fields().items():
+        if name != "displacement":
+            mesh.point_data[name] = values
     return mesh
 
 
@@ -118,7 +125,11 @@ def colour_range(frames: Sequence[ShellFrame], options: RenderOptions) -> tuple[
 
 def render_frame(mesh: Any, path: Path, clim: tuple[float, float], options: RenderOptions,
                  camera: Any | None = None, balls: Any | None = None) -> Any:
-    """Render a PolyData (and the balls' spheres) off-screen; return the camera (reuse it)."""
+    """Render a PolyData (and the balls' spheres) off-screen; return the camera (reuse it).
+
+    Faces whose three vertices carry ``self_intersecting`` = 1 are drawn over it in
+    :data:`CROSSING_COLOUR` with their edges.
+    """
     import pyvista as pv
     from vtkmodules.vtkCommonCore import vtkLogger
 
@@ -131,6 +142,10 @@ def render_frame(mesh: Any, path: Path, clim: tuple[float, float], options: Rend
     title = "log10 bending energy density" if options.log_scale else "bending energy density"
     plotter.add_mesh(mesh, scalars=scalars, clim=clim, cmap=options.colormap, smooth_shading=True,
                      specular=0.5, specular_power=20.0, scalar_bar_args={"title": title})
+    crossing = mesh.point_data.get("self_intersecting")
+    if crossing is not None and np.any(np.asarray(crossing) > 0.5):
+        marked = mesh.threshold(0.5, scalars="self_intersecting", all_scalars=True)
+        plotter.add_mesh(marked, color=CROSSING_COLOUR, show_edges=True)
     if balls is not None:
         plotter.add_mesh(balls, color="firebrick", smooth_shading=True, specular=0.6)
     if camera is None:

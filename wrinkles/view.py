@@ -3,7 +3,7 @@
 ``RUN/view.py`` is a ParaView Python script: it loads ``body.xdmf`` and ``shell.xdmf`` (the
 Xdmf3 reader), warps both by their ``displacement`` (the files store the rest shape), colours
 the shell by ``bending_energy_density`` on a log scale with the range of the last step, marks
-in orange the faces passing through another face at the last step (``self_intersecting``),
+in magenta the faces passing through another face at the last step (``self_intersecting``),
 shows the body as a translucent surface, the rigid balls of ``balls.xdmf`` as spheres of their
 radius, and jumps to the last time step. Open it with ``paraview --script=RUN/view.py``, or
 ``pvpython RUN/view.py`` to write ``RUN/view.png`` without a window (on a machine without a
@@ -91,9 +91,9 @@ if shell is not None:
         faces.LowerThreshold, faces.UpperThreshold = 0.5, 1.0
         marked = Show(faces, view)
         marked.ColorArrayName = ["POINTS", ""]
-        marked.DiffuseColor = [1.0, 0.5, 0.0]
+        marked.DiffuseColor = [1.0, 0.0, 1.0]
         marked.Representation = "Surface With Edges"
-        print("self-intersecting faces at the last step: shown in orange")
+        print("self-intersecting faces at the last step: shown in magenta")
 balls_path = os.path.join(RUN, "balls.xdmf")
 if os.path.exists(balls_path):
     balls = Xdmf3ReaderS(registrationName="balls.xdmf", FileName=[balls_path])

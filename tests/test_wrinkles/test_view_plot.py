@@ -102,7 +102,7 @@ def test_plot_marks_the_frames_whose_shell_stopped_above_its_tolerance(sofa):
 
 
 def test_plot_marks_the_frames_whose_shell_passes_through_itself(sofa):
-    """Orange rings on the shell's iteration curve at the frames with
+    """Magenta rings on the shell's iteration curve at the frames with
     ``shell_self_intersections > 0`` (the sofa's own frames have none), counted in the
     title."""
     import copy
@@ -175,7 +175,7 @@ def test_view_script_runs_in_pvpython(sofa):
                     reason="ParaView (apt-get install paraview xvfb) not installed")
 def test_view_script_marks_self_intersecting_faces_in_pvpython(tmp_path):
     """A shell series whose last step has faces flagged ``self_intersecting`` (a plate folded
-    through itself): the view script shows them in orange and says so; ParaView writes the
+    through itself): the view script shows them in magenta and says so; ParaView writes the
     picture."""
     import numpy as np
 
@@ -202,3 +202,37 @@ def test_view_script_marks_self_intersecting_faces_in_pvpython(tmp_path):
     assert run.returncode == 0, run.stderr[-2000:]
     assert "self-intersecting faces at the last step" in run.stdout
     assert (tmp_path / "view.png").stat().st_size > 10_000
+
+
+def test_renders_draw_self_intersecting_faces_in_magenta(tmp_path):
+    """A plate folded through itself rendered off-screen: with its ``self_intersecting``
+    vertices the picture has magenta pixels (the crossing faces), without them none (magenta
+    is in neither the colour map nor the background)."""
+    import numpy as np
+    from PIL import Image
+
+    from meshes.shells import grid_plate
+    from models.shell.self_intersection import intersecting_faces
+    from wrinkles.render import RenderOptions, polydata, render_frame
+    from wrinkles.shell_output import ShellFrame
+
+    rest, faces = grid_plate(10, 10)
+    x = rest.copy()
+    right = x[:, 0] > 0.5 + 1e-12
+    d = x[right, 0] - 0.5
+    x[right, 0], x[right, 2] = 0.5 + d * np.cos(3.5), d * np.sin(3.5) + 0.1
+    x[right, 1] += 0.037
+    crossing = np.zeros(len(x))
+    crossing[faces[intersecting_faces(x, faces).ravel()].ravel()] = 1.0
+    density = 1e-3 * (1.0 + x[:, 0])
+    opts = RenderOptions(width=400, height=300, view=(0.3, -1.0, 0.6))
+    counts = []
+    for flags in (crossing, np.zeros(len(x))):
+        path = tmp_path / f"plate_{int(flags.sum())}.png"
+        render_frame(polydata(rest, faces, ShellFrame(1.0, x - rest, density, flags)), path,
+                     (-3.0, -2.0), opts)
+        rgb = np.asarray(Image.open(path).convert("RGB"), dtype=int)
+        magenta = (rgb[..., 0] > 200) & (rgb[..., 1] < 80) & (rgb[..., 2] > 200)
+        counts.append(int(magenta.sum()))
+    print("magenta pixels with / without the flags", counts)
+    assert counts[0] > 100 and counts[1] == 0

@@ -237,3 +237,21 @@ def load_script(path: Path) -> ModuleType:
     sys.modules[spec.name] = module  # dataclasses look their module up there
     spec.loader.exec_module(module)
     return module
+
+
+def folded_plate(angle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A 10 x 10 unit plate whose half x > 0.5 is turned by ``angle`` [rad] about x = 0.5.
+
+    The turned half is also moved by (0, 0.037, 0.1) (the column of faces at the hinge
+    stretches to hold it; off the grid's lines, so no edge crosses the other half exactly on
+    one of its edges): past pi it passes through the other half. Returns ``(rest, faces, x)``.
+    """
+    from meshes.shells import grid_plate
+
+    rest, faces = grid_plate(10, 10, 1.0, 1.0)
+    x = rest.copy()
+    right = x[:, 0] > 0.5 + 1e-12
+    d = x[right, 0] - 0.5
+    x[right, 0], x[right, 2] = 0.5 + d * np.cos(angle), d * np.sin(angle) + 0.1
+    x[right, 1] += 0.037
+    return rest, faces, x

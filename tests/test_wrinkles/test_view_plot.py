@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support import REPO, SCENE, wrinkles
+from support import REPO, SCENE, folded_plate, wrinkles
 
 from wrinkles.rigid_output import read_balls
 
@@ -171,6 +171,17 @@ def test_view_script_runs_in_pvpython(sofa):
     assert (sofa / "view.png").stat().st_size > 10_000
 
 
+def plate_through_itself() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The plate folded to 3.5 rad (:func:`support.folded_plate`) and its vertices'
+    ``self_intersecting`` flags: ``(rest, faces, x, flags)``."""
+    from models.shell.self_intersection import intersecting_faces
+
+    rest, faces, x = folded_plate(3.5)
+    flags = np.zeros(len(x))
+    flags[faces[intersecting_faces(x, faces).ravel()].ravel()] = 1.0
+    return rest, faces, x, flags
+
+
 @pytest.mark.skipif(shutil.which("pvpython") is None or shutil.which("xvfb-run") is None,
                     reason="ParaView (apt-get install paraview xvfb) not installed")
 def test_view_script_marks_self_intersecting_faces_in_pvpython(tmp_path):
@@ -179,18 +190,9 @@ def test_view_script_marks_self_intersecting_faces_in_pvpython(tmp_path):
     picture."""
     import numpy as np
 
-    from meshes.shells import grid_plate
-    from models.shell.self_intersection import intersecting_faces
     from wrinkles.shell_output import ShellFrame, ShellSeries
 
-    rest, faces = grid_plate(10, 10)
-    x = rest.copy()
-    right = x[:, 0] > 0.5 + 1e-12
-    d = x[right, 0] - 0.5
-    x[right, 0], x[right, 2] = 0.5 + d * np.cos(3.5), d * np.sin(3.5) + 0.1
-    x[right, 1] += 0.037
-    crossing = np.zeros(len(x))
-    crossing[faces[intersecting_faces(x, faces).ravel()].ravel()] = 1.0
+    rest, faces, x, crossing = plate_through_itself()
     assert crossing.sum() > 10
     series = ShellSeries(tmp_path / "shell.xdmf", rest, faces, np.zeros(len(x), dtype=np.int64))
     series.write(ShellFrame(0.0, np.zeros_like(x), np.full(len(x), 1e-3), np.zeros(len(x))))
@@ -211,19 +213,10 @@ def test_renders_draw_self_intersecting_faces_in_magenta(tmp_path):
     import numpy as np
     from PIL import Image
 
-    from meshes.shells import grid_plate
-    from models.shell.self_intersection import intersecting_faces
     from wrinkles.render import RenderOptions, polydata, render_frame
     from wrinkles.shell_output import ShellFrame
 
-    rest, faces = grid_plate(10, 10)
-    x = rest.copy()
-    right = x[:, 0] > 0.5 + 1e-12
-    d = x[right, 0] - 0.5
-    x[right, 0], x[right, 2] = 0.5 + d * np.cos(3.5), d * np.sin(3.5) + 0.1
-    x[right, 1] += 0.037
-    crossing = np.zeros(len(x))
-    crossing[faces[intersecting_faces(x, faces).ravel()].ravel()] = 1.0
+    rest, faces, x, crossing = plate_through_itself()
     density = 1e-3 * (1.0 + x[:, 0])
     opts = RenderOptions(width=400, height=300, view=(0.3, -1.0, 0.6))
     counts = []

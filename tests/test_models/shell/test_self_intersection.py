@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from support import folded_plate as support_folded_plate
 
 from meshes.errors import InputError
 from meshes.shells import grid_plate
@@ -49,14 +50,8 @@ def test_two_triangles_meet_until_one_is_lifted_clear() -> None:
 
 
 def folded_plate(angle: float) -> tuple[np.ndarray, np.ndarray]:
-    """A 10 x 10 unit plate whose half x > 0.5 is turned by ``angle`` [rad] about x = 0.5
-    and moved by (0, 0.037, 0.1) (the column of faces at the hinge stretches to hold it; off
-    the grid's lines, so no edge crosses the other half exactly on one of its edges)."""
-    x, faces = grid_plate(10, 10, 1.0, 1.0)
-    right = x[:, 0] > 0.5 + 1e-12
-    d = x[right, 0] - 0.5
-    x[right, 0], x[right, 2] = 0.5 + d * np.cos(angle), d * np.sin(angle) + 0.1
-    x[right, 1] += 0.037
+    """:func:`support.folded_plate`: its positions and faces."""
+    _, faces, x = support_folded_plate(angle)
     return x, faces
 
 

@@ -32,6 +32,7 @@ import numpy as np
 
 from meshes.errors import InputError
 from models.backend import MPI
+from models.shell.self_intersection import vertex_flags
 from wrinkles.collective import on_root
 from wrinkles.output import (
     WORK_DIR,
@@ -249,8 +250,7 @@ Writer = Callable[[int, float], None]
 
 def shell_frame(shell: Shell, t: float) -> ShellFrame:
     """Return the output fields of the current state."""
-    crossing = np.zeros(shell.rest.shape[0])
-    crossing[shell.topology.faces[shell.intersecting_faces().ravel()].ravel()] = 1.0
+    crossing = vertex_flags(shell.topology.faces, shell.intersecting_faces(), shell.rest.shape[0])
     return ShellFrame(t, shell.x - shell.rest, shell.energy.bending_density(shell.x), crossing)
 
 

@@ -84,8 +84,8 @@ if shell is not None:
     bar.LabelFontSize = 12
     bar.ScalarBarLength = 0.4
     bar.WindowLocation = "Lower Right Corner"
-    crossing = shell.PointData.keys()
-    if "self_intersecting" in crossing and shell.PointData["self_intersecting"].GetRange()[1] > 0:
+    names = shell.PointData.keys()
+    if "self_intersecting" in names and shell.PointData["self_intersecting"].GetRange()[1] > 0:
         faces = Threshold(registrationName="self-intersecting faces", Input=shell)
         faces.Scalars = ["POINTS", "self_intersecting"]
         faces.LowerThreshold, faces.UpperThreshold = 0.5, 1.0

@@ -181,6 +181,16 @@ def intersecting_faces(x: np.ndarray, faces: np.ndarray, threads: int = 1) -> np
     return found[np.lexsort((found[:, 1], found[:, 0]))]
 
 
+def vertex_flags(faces: np.ndarray, pairs: np.ndarray, n: int) -> np.ndarray:
+    """Return (n,) floats: 1.0 at the vertices of the faces in ``pairs``, else 0.0.
+
+    ``pairs``: (P, 2) face indices, e.g. from :func:`intersecting_faces`.
+    """
+    flags = np.zeros(n)
+    flags[np.asarray(faces)[np.asarray(pairs, dtype=np.int64).ravel()].ravel()] = 1.0
+    return flags
+
+
 @numba.njit(cache=True, nogil=True)
 def _boxes(x: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
     """Lower and upper corners (F, 3) of each face's bounding box."""
@@ -224,4 +234,4 @@ def _run_bounds(keys: np.ndarray, parts: int) -> np.ndarray:
     return np.array([*cuts, keys.size], dtype=np.int64)
 
 
-__all__ = ["MAX_CUBES_PER_FACE", "SINGULAR", "intersecting_faces"]
+__all__ = ["MAX_CUBES_PER_FACE", "SINGULAR", "intersecting_faces", "vertex_flags"]

@@ -174,12 +174,10 @@ def test_view_script_runs_in_pvpython(sofa):
 def plate_through_itself() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The plate folded to 3.5 rad (:func:`support.folded_plate`) and its vertices'
     ``self_intersecting`` flags: ``(rest, faces, x, flags)``."""
-    from models.shell.self_intersection import intersecting_faces
+    from models.shell.self_intersection import intersecting_faces, vertex_flags
 
     rest, faces, x = folded_plate(3.5)
-    flags = np.zeros(len(x))
-    flags[faces[intersecting_faces(x, faces).ravel()].ravel()] = 1.0
-    return rest, faces, x, flags
+    return rest, faces, x, vertex_flags(faces, intersecting_faces(x, faces), len(x))
 
 
 @pytest.mark.skipif(shutil.which("pvpython") is None or shutil.which("xvfb-run") is None,

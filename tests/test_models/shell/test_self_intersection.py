@@ -9,7 +9,7 @@ from support import folded_plate as support_folded_plate
 
 from meshes.errors import InputError
 from meshes.shells import grid_plate
-from models.shell.self_intersection import intersecting_faces
+from models.shell.self_intersection import intersecting_faces, vertex_flags
 
 
 def brute_force(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -102,3 +102,9 @@ def test_bad_input_is_refused_naming_it() -> None:
         intersecting_faces(np.where(x == 1.0, np.nan, x), faces)
     with pytest.raises(InputError, match="faces"):
         intersecting_faces(x, faces + 1)
+
+
+def test_vertex_flags_mark_the_corners_of_the_pairs_faces() -> None:
+    x, faces = two_triangles(0.0)
+    assert vertex_flags(faces, intersecting_faces(x, faces), 7).tolist() == [1, 1, 1, 1, 1, 1, 0]
+    assert vertex_flags(faces, np.zeros((0, 2), dtype=np.int64), 6).tolist() == [0] * 6

@@ -135,13 +135,17 @@ def admissible_start(energy: ShellEnergy, x0: np.ndarray, anchor: np.ndarray
     Repair: the offsets ``x0 - anchor`` of the vertices of every blocked stencil
     (:meth:`~models.shell.energy.ShellEnergy.blocked_vertices`) are halved, repeated until
     none is blocked (after :data:`START_HALVINGS` halvings they are set to 0). The anchor
-    (the target plus the imperfection) has no blocked stencil where the target is not
+    (the target plus the imperfection) has no turned-over face where the target is not
     degenerate, so only the vertices around them move and the wrinkles elsewhere are kept.
-    A start that is admissible is returned unchanged (the same array).
+    A hinge can still be closed through itself at the anchor: its followed angle differs
+    from the target's by more than pi (a fold carried through itself by an unconverged
+    solve, then pulled back onto a target bent the other way); such hinges take the
+    principal branch at the anchor
+    (:meth:`~models.shell.energy.ShellEnergy.release_folds`). A start that is admissible is
+    returned unchanged (the same array).
 
     Raises:
-        SolverError: a stencil is blocked even at the anchor (a degenerate target face, or a
-            fold whose followed angle differs from the target's by more than pi).
+        SolverError: a face stays turned over even at the anchor (a degenerate target face).
 
     """
     verts = energy.blocked_vertices(x0)
@@ -151,13 +155,13 @@ def admissible_start(energy: ShellEnergy, x0: np.ndarray, anchor: np.ndarray
     for halving in range(START_HALVINGS + 1):
         factor = 0.5 if halving < START_HALVINGS else 0.0
         x[verts] = anchor[verts] + factor * (x[verts] - anchor[verts])
+        if halving == START_HALVINGS:
+            energy.release_folds(x)  # folds still closed through themselves at the anchor
         verts = energy.blocked_vertices(x)
         if verts.size == 0:
             return x, int(np.any(x != x0, axis=1).sum())
-    raise SolverError(f"shell warm start: vertex {int(verts[0])} stays on a face turned over or "
-                      f"a fold closed through itself even when pulled back onto the target (a "
-                      f"degenerate target face, or a fold turned by more than half a turn from "
-                      f"the target's hinge)")
+    raise SolverError(f"shell warm start: vertex {int(verts[0])} stays on a face turned over "
+                      f"even when pulled back onto the target (a degenerate target face)")
 
 
 def settled(shell: Shell, x0: np.ndarray) -> bool:

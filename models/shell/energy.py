@@ -281,6 +281,22 @@ class ShellEnergy:
         theta = hinge_angles(check_positions(x, self.n_vertices), self.topology.hinges)
         self._branch = theta if self._branch is None else on_branch(theta, self._branch)
 
+    def release_folds(self, x: np.ndarray) -> int:
+        """Give every hinge closed through itself at ``x`` the branch ``(-pi, pi]``; count them.
+
+        A hinge whose angle at ``x``, followed from its reference, has ``|theta| >= pi`` (the
+        fold contact's ``+inf``) takes its principal angle at ``x`` as its new reference, so
+        that it is open again on the side its faces now lie. The memory of which side a fold
+        closed from is lost for those hinges only; the others keep their references. Nothing
+        changes (and 0 is returned) while the fold contact is off or no reference is set.
+        """
+        if self._branch is None or self.params.fold_contact <= 0.0:
+            return 0
+        theta = hinge_angles(check_positions(x, self.n_vertices), self.topology.hinges)
+        closed = np.abs(on_branch(theta, self._branch)) >= np.pi
+        self._branch = np.where(closed, theta, self._branch)
+        return int(np.count_nonzero(closed))
+
     @property
     def hinge_branch(self) -> np.ndarray | None:
         """The hinges' reference angles (Hn,) [rad] (a copy), None before any is set."""

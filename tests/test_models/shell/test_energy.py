@@ -233,7 +233,8 @@ def test_the_energy_follows_a_closing_fold_from_solve_start_to_solve_start() -> 
     on the reference 3.5 (not 3.5 - 2 pi), and W_B is ``k_B w theta^2`` there (no fold
     contact); the references are checkpointable (copy out, set back; a wrong shape refused
     naming them). With the fold contact on, that state is a fold closed through itself:
-    +inf, and its hinge's four vertices are the blocked ones."""
+    +inf, and its hinge's four vertices are the blocked ones; ``release_folds`` gives that
+    hinge its principal angle as reference and the state is finite again."""
     from models.shell.hinge_angle import hinge_angles
     from models.shell.topology import ShellTopology
 
@@ -268,3 +269,13 @@ def test_the_energy_follows_a_closing_fold_from_solve_start_to_solve_start() -> 
     assert touching.blocked_vertices(fold(3.0)).size == 0
     with pytest.raises(InputError, match="fold_gap"):
         ShellParams(fold_gap=4.0)
+    # release_folds: the closed hinge takes its principal angle, open again on that side
+    assert energy.release_folds(fold(3.5)) == 0  # no fold contact: nothing closed
+    assert touching.release_folds(fold(3.0)) == 0
+    assert touching.hinge_branch[0] == branch[0]  # an open fold keeps its reference
+    assert touching.release_folds(fold(3.5)) == 1
+    assert touching.hinge_branch[0] == pytest.approx(3.5 - 2 * np.pi, abs=1e-12)
+    assert touching.blocked_vertices(fold(3.5)).size == 0
+    assert touching.value(fold(3.5)) < np.inf
+    fresh = ShellEnergy(topo, rest, ShellParams(k_L=0.0, k_B=2.0, k_P=0.0, k_F=0.0))
+    assert fresh.release_folds(fold(3.5)) == 0 and fresh.hinge_branch is None  # no reference

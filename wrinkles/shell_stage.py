@@ -3,16 +3,17 @@
 Per frame, after the body step:
 
     y   = B (X_q + u_q) = X_T + B u_q                     (target; B reproduces X_q exactly)
-    x_0 = x_prev + (y - y_prev) + eta_k                   (warm start moved with the body)
+    x_0 = y + R_i (x_prev - y_prev)_i + eta_k            (warm start carried with the body)
     x   = argmin W                                        (Newton on every rank, rank 0's x kept)
 
-``eta_k`` is a tiny deterministic imperfection along the rest vertex normals (``imperfection``
-times the mean rest edge length, seeded by the frame number): a flat face compressed exactly in
-its plane is a stationary point of W, so without it no wrinkle can form. The shell is solved
-by :attr:`Shell.solver`: on one rank the serial Newton, on more the Newton split over the ranks
-(each evaluates its own vertices' stencils and holds their rows of the distributed Newton
-system; every rank ends with the same x). The set-up is :mod:`wrinkles.shell_setup`, two-way
-coupling :mod:`wrinkles.two_way`.
+``R_i`` is the rotation of the target around vertex i since the previous frame
+(:func:`carried_start`). ``eta_k`` is a tiny deterministic imperfection along the rest vertex
+normals (``imperfection`` times the mean rest edge length, seeded by the frame number): a flat
+face compressed exactly in its plane is a stationary point of W, so without it no wrinkle can
+form. The shell is solved by :attr:`Shell.solver`: on one rank the serial Newton, on more the
+Newton split over the ranks (each evaluates its own vertices' stencils and holds their rows of
+the distributed Newton system; every rank ends with the same x). The set-up is
+:mod:`wrinkles.shell_setup`, two-way coupling :mod:`wrinkles.two_way`.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from meshes.errors import InputError, SolverError
 from models.backend import MPI
 from models.embedding.embedding import apply_to_function
 from models.shell.energy import ShellEnergy
+from models.shell.local_rotation import local_rotations
 from models.shell.rest import vertex_normals
 from solvers.body import Body
 from solvers.decomposition.split_newton import SplitNewtonSolver
@@ -124,12 +126,13 @@ def admissible_start(energy: ShellEnergy, x0: np.ndarray, anchor: np.ndarray
                      ) -> tuple[np.ndarray, int]:
     """Return a warm start with finite barriers and the number of vertices it moved.
 
-    The warm start ``x_prev + (y - y_prev)`` carries the previous offset from the target onto
+    The warm start (:func:`carried_start`) carries the previous offset from the target onto
     the new target ``y``, but the flip barrier's reference normals are the face normals of
     ``y`` (:meth:`models.shell.energy.ShellEnergy.set_target`): a face that ended the previous
     solve close to the barrier (s ~ 0.01, a wrinkle fold standing at ~90 degrees to its
-    target face) is turned over against the new normals (s <= 0, W = +inf) when the target
-    rotates under it, e.g. when two-way coupling moves the body (docs/notes/two-way-coupling.md);
+    target face) can be turned over against the new normals (s <= 0, W = +inf) where the
+    target deforms under it, e.g. when two-way coupling moves the body
+    (docs/notes/two-way-coupling.md);
     likewise a fold held shut by the fold contact can be carried through itself.
 
     Repair: the offsets ``x0 - anchor`` of the vertices of every blocked stencil
@@ -179,19 +182,32 @@ def settled(shell: Shell, x0: np.ndarray) -> bool:
     return bool(np.linalg.norm(grad) <= options.atol + options.rtol * scale)
 
 
+def carried_start(shell: Shell, y: np.ndarray) -> np.ndarray:
+    """Return ``y + R_i (x_prev - y_prev)_i``: the wrinkles carried onto the new target.
+
+    The offset of every vertex from the previous target is turned with the rotation of the
+    target around it from ``y_prev`` to ``y``
+    (:func:`models.shell.local_rotation.local_rotations`), so that a target that rotates
+    (a bent or twisted body, a tumbling one) takes its wrinkles along instead of leaving
+    them pointing the old way; a translated target gives ``x_prev + (y - y_prev)``.
+    """
+    rotations = local_rotations(shell.y, y, shell.topology.faces, shell.topology.edges)
+    return y + np.einsum("nij,nj->ni", rotations, shell.x - shell.y)
+
+
 def warm_start(shell: Shell, y: np.ndarray, frame: int, perturb: bool = True,
                unless_settled: bool = False) -> np.ndarray:
-    """Move the target to ``y``; return the warm start ``x_prev + (y - y_prev) + eta_k``.
+    """Move the target to ``y``; return the warm start :func:`carried_start` ``+ eta_k``.
 
-    ``eta_k`` only when ``perturb``, and with ``unless_settled`` only when ``x_prev + (y -
-    y_prev)`` is not already a solution (:func:`settled`: the body moved the shell's target
-    rigidly, or not at all): the Newton would spend its iterations removing the
+    ``eta_k`` only when ``perturb``, and with ``unless_settled`` only when the carried start
+    is not already a solution (:func:`settled`: the body moved the shell's target rigidly,
+    or not at all): the Newton would spend its iterations removing the
     imperfection again. A start with a face turned over against the new target's normals
     is repaired (:func:`admissible_start`; ``shell.start_repaired`` counts the vertices
     moved). The hinge angles are followed to the start
     (:meth:`wrinkles.shell_setup.Shell.follow_hinges`).
     """
-    x0 = shell.x + (y - shell.y)
+    x0 = carried_start(shell, y)
     shell.set_target(y)
     if perturb and unless_settled and settled(shell, x0):
         perturb = False
@@ -263,8 +279,8 @@ written before they existed: zeros, and none)."""
 def shell_arrays(shell: Shell) -> dict[str, np.ndarray]:
     """Return the shell state a resumed run needs to take the same steps (checkpoint arrays).
 
-    The warm start ``x_0 = x + (y_new - y) + eta_k`` needs ``x`` and the previous target
-    ``y``; the relative Newton tolerance needs the reference ``gradient_scale``; two-way
+    The warm start ``x_0 = y_new + R_i (x - y)_i + eta_k`` needs ``x`` and the previous
+    target ``y``; the relative Newton tolerance needs the reference ``gradient_scale``; two-way
     coupling keeps the penalty force ``force`` (its share on pinned body nodes counts in the
     pins' reaction); the shifts of the next solve start from ``shifts``; its hinge angles
     are followed from ``hinge_branch`` (empty before the first solve: none).
@@ -315,6 +331,6 @@ def one_way_stage(shell: Shell, body: Body, write: Writer) -> Callable[[int], St
     return stage
 
 
-__all__ = ["StageRecord", "admissible_start", "deviation", "imperfection", "one_way_stage",
-           "minimize_from_state", "restore_shell", "scale_tolerance", "shell_arrays",
-           "settled", "shell_record", "solve_shell", "target", "warm_start"]
+__all__ = ["StageRecord", "admissible_start", "carried_start", "deviation", "imperfection",
+           "one_way_stage", "minimize_from_state", "restore_shell", "scale_tolerance",
+           "shell_arrays", "settled", "shell_record", "solve_shell", "target", "warm_start"]

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 from support import LENGTH, SKIN, bar_scene
 
 from models.backend import MPI
@@ -68,7 +69,8 @@ def test_frames_that_only_move_the_shell_rigidly_take_no_iteration(tmp_path):
     assert np.abs(shell.x - shell.y).max() < 1e-12
     moved = shell.y + np.array([0.01, 0.0, 0.0])
     start = warm_start(shell, moved, 4, unless_settled=True)
-    assert np.array_equal(start, shell.x + (moved - shell.y))  # no imperfection
+    # no imperfection (the carried offset turned by the identity, to round-off)
+    assert np.allclose(start, shell.x + (moved - shell.y), rtol=0, atol=1e-15)
     center = shell.y.mean(axis=0)
     strained = center + 1.01 * (shell.y - center)  # 1 % stretch: not a solution
     start = warm_start(shell, strained, 4, unless_settled=True)
@@ -137,6 +139,34 @@ def test_compressed_bar_wrinkles(tmp_path, stretched):
     # measured ratio 35: compression wrinkles the lateral faces, stretch does not
     assert lateral_normal_deviation(run.shell) > 15.0 * lateral_normal_deviation(stretched.shell)
     assert records[-1]["shell_terms"]["bending"] > 0.0
+
+
+def test_a_rotated_target_carries_the_wrinkles_round_with_it(tmp_path):
+    """The bar compressed by 4 % (one frame, wrinkled: x off y by up to 0.3 edges), then its
+    target turned rigidly by 35 degrees about a tilted axis through its centre: the warm
+    start is the wrinkled shell turned with it (to round-off), already a solution, so the
+    frame takes no Newton iteration and no imperfection. Offsets carried unturned (the warm
+    start before) leave the wrinkles pointing the old way: a start far from a solution."""
+    shell_keys = {"subdivision": {"levels": 1}, "skin": SKIN, "energy": {"k_P": 1.0e4},
+                  "solver": {"rtol": 1e-8}}
+    run = run_bar(tmp_path, (-0.04 * LENGTH, 0.0, 0.0), 1, shell_keys)
+    shell = run.shell
+    assert shell is not None
+    amplitude = run.records[-1].details["wrinkle_amplitude_rel"]
+    assert amplitude > 0.1  # wrinkled
+    axis = np.array([0.3, 1.0, 0.5]) / np.linalg.norm([0.3, 1.0, 0.5])
+    rot = Rotation.from_rotvec(np.deg2rad(35.0) * axis).as_matrix()
+    center = shell.y.mean(axis=0)
+    turned_x = (shell.x - center) @ rot.T + center
+    unturned = shell.x + ((shell.y - center) @ rot.T + center - shell.y)
+    y = (shell.y - center) @ rot.T + center
+    report = solve_shell(shell, y, 2, MPI.COMM_WORLD)
+    print(f"wrinkle amplitude {amplitude:.3f} edges; iterations on the turned target "
+          f"{report.iterations}; the unturned start {np.abs(unturned - turned_x).max():.2e} m "
+          f"off the turned shell")
+    assert report.iterations == 0
+    assert np.abs(shell.x - turned_x).max() < 1e-12
+    assert np.abs(unturned - turned_x).max() > 0.1 * amplitude * shell.edge_length
 
 
 def test_shell_checkpoint_arrays_carry_the_shift_memory(stretched):

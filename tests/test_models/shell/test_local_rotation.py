@@ -1,0 +1,61 @@
+"""Per-vertex rotations fitted between two states of a surface (models/shell/local_rotation.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from meshes.errors import InputError
+from meshes.shells import grid_plate, icosphere
+from models.shell.local_rotation import local_rotations
+from models.shell.topology import ShellTopology
+
+
+def surface(kind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(x, faces, edges)`` of an open plate or a closed sphere."""
+    x, faces = grid_plate(6, 5) if kind == "plate" else icosphere(2)
+    return x, faces, ShellTopology.from_faces(faces, x.shape[0]).edges
+
+
+@pytest.mark.parametrize("kind", ["plate", "sphere"])
+def test_a_rigid_motion_gives_every_vertex_its_rotation(kind) -> None:
+    """Rotated by 70 degrees about a tilted axis and translated: R_i = R at every vertex, to
+    round-off; translated only: the identity."""
+    x, faces, edges = surface(kind)
+    rot = Rotation.from_rotvec(70.0 * np.pi / 180.0 * np.array([1.0, 2.0, -0.5])
+                               / np.linalg.norm([1.0, 2.0, -0.5])).as_matrix()
+    moved = x @ rot.T + np.array([0.3, -2.0, 5.0])
+    assert np.abs(local_rotations(x, moved, faces, edges) - rot).max() < 1e-13
+    assert np.abs(local_rotations(x, x + 1.0, faces, edges) - np.eye(3)).max() < 1e-14
+
+
+def test_a_bent_plate_turns_each_vertex_with_its_own_part() -> None:
+    """A plate bent about the line x = 0.5 (its right half turned by 40 degrees about y): the
+    vertices inside each half get that half's rotation; every fitted matrix is a proper
+    rotation; a non-uniform stretch gives rotations too (orthogonal, det +1)."""
+    x, faces, edges = surface("plate")
+    angle = np.deg2rad(40.0)
+    rot = Rotation.from_rotvec([0.0, angle, 0.0]).as_matrix()
+    right = x[:, 0] > 0.5 + 1e-12
+    bent = x.copy()
+    bent[right] = (x[right] - [0.5, 0.0, 0.0]) @ rot.T + [0.5, 0.0, 0.0]
+    r = local_rotations(x, bent, faces, edges)
+    inner_left, inner_right = x[:, 0] < 0.3, x[:, 0] > 0.7
+    assert np.abs(r[inner_left] - np.eye(3)).max() < 1e-13
+    assert np.abs(r[inner_right] - rot).max() < 1e-13
+    stretched = bent * np.array([1.3, 0.8, 1.0]) + 0.01 * np.sin(7.0 * x[:, [1, 2, 0]])
+    for m in (r, local_rotations(x, stretched, faces, edges)):
+        assert np.abs(np.einsum("nij,nkj->nik", m, m) - np.eye(3)).max() < 1e-12
+        assert np.allclose(np.linalg.det(m), 1.0, rtol=0, atol=1e-12)
+
+
+def test_the_states_must_be_the_surfaces_positions() -> None:
+    """A state of another vertex count or with a NaN is refused, naming it."""
+    x, faces, edges = surface("plate")
+    with pytest.raises(InputError, match="after"):
+        local_rotations(x, x[:-1], faces, edges)
+    bad = x.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(InputError, match="before"):
+        local_rotations(bad, x, faces, edges)

@@ -171,7 +171,7 @@ def test_admissible_start_releases_a_fold_closed_against_a_target_bent_the_other
     assert branch is not None and branch[0] == pytest.approx(-0.3, abs=1e-12)
     assert energy.blocked_vertices(x).size == 0 and np.isfinite(energy.value(x))
     assert energy.release_folds(x) == 0  # nothing left closed
-    xs, report = ShellNewtonSolver(energy).minimize(x)  # type: ignore[arg-type]
+    _, report = ShellNewtonSolver(energy).minimize(x)  # type: ignore[arg-type]
     assert report.converged and np.isfinite(report.energy)
 
 

@@ -50,6 +50,22 @@ def test_a_bent_plate_turns_each_vertex_with_its_own_part() -> None:
         assert np.allclose(np.linalg.det(m), 1.0, rtol=0, atol=1e-12)
 
 
+def test_a_surface_collapsed_or_mirrored_still_gets_proper_rotations() -> None:
+    """The sphere collapsed onto a line (every covariance of rank one, ``det S = 0``: Kabsch's
+    branch) and mirrored through a plane: every vertex gets a proper rotation, orthogonal
+    with determinant +1 (a polar factor of the collapsed covariance does not exist)."""
+    from models.shell import local_rotation
+
+    x, faces, edges = surface("sphere")
+    line = x * np.array([1.0, 0.0, 0.0])
+    s = local_rotation._covariances(x, line, np.zeros_like(x), np.zeros_like(x), edges)
+    assert np.all(local_rotation._polar_rotations(s)[1])  # all flagged for Kabsch
+    for after in (line, x * np.array([-1.0, 1.0, 1.0])):
+        r = local_rotations(x, after, faces, edges)
+        assert np.abs(np.einsum("nij,nkj->nik", r, r) - np.eye(3)).max() < 1e-12
+        assert np.allclose(np.linalg.det(r), 1.0, rtol=0, atol=1e-12)
+
+
 def test_the_states_must_be_the_surfaces_positions() -> None:
     """A state of another vertex count or with a NaN is refused, naming it."""
     x, faces, edges = surface("plate")

@@ -58,19 +58,19 @@ def test_the_compressed_bar_folds_shut_converges_and_resumes_on_the_fold(tmp_pat
 
 @pytest.mark.slow
 def test_a_bar_buckled_as_a_column_runs_to_its_last_frame(tmp_path):
-    """``scenes/wrinkle_skin.toml --frames 12`` (48 %): the bar buckles as a column, frame 11
-    stops at its iteration cap with folds carried through themselves, and frame 12's warm
-    start pulled such a fold back onto a target bent the other way (measured: vertex 33). That
-    start used to end the run with exit 2; now the hinge takes the target's branch
-    (``ShellEnergy.release_folds``), frame 12 converges and says that its skin passes through
-    itself. Measured: frame 11 58 face pairs, frame 12 140 iterations, 87 vertices repaired,
-    125 pairs."""
+    """``scenes/wrinkle_skin.toml --frames 12`` (48 %): the bar buckles as a column. The run
+    used to end with exit 2 at frame 12's warm start (frame 11 at its 400-iteration cap left
+    a fold shut against a target bent the other way); with that fold released
+    (``ShellEnergy.release_folds``) frame 12 converged, frame 11 still at its cap; with the
+    warm start turned with the target (``wrinkles.shell_stage.carried_start``) every frame
+    converges and no release is needed. Measured: 938 iterations, frames 11-12 127 / 60, their
+    skin passing through itself in 74 / 71 face pairs (no contact between faces that share
+    no hinge)."""
     scene = with_frames(load_scene(REPO / "scenes" / "wrinkle_skin.toml",
                                    ["output.render=false", "output.xdmf=false"]), 12)
     run = run_frames(prepare(scene, tmp_path / "out", MPI.COMM_SELF), lambda line: None)
-    last = run.records[-1].details
-    print({k: last[k] for k in ("shell_iterations", "shell_start_repaired",
-                                "shell_self_intersections")})
-    assert len(run.records) == 12 and last["shell_converged"]
-    assert last["shell_start_repaired"] > 0
-    assert last["shell_self_intersections"] > 0  # no contact between faces sharing no hinge
+    records = [r.details for r in run.records]
+    print("iterations", [r["shell_iterations"] for r in records],
+          "intersecting pairs", [r["shell_self_intersections"] for r in records])
+    assert len(records) == 12 and all(r["shell_converged"] for r in records)
+    assert records[-1]["shell_self_intersections"] > 0

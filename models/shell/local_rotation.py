@@ -91,14 +91,21 @@ def _polar_rotations(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma:
     n = s.shape[0]
     out = np.zeros((n, 3, 3))
     flagged = np.zeros(n, dtype=np.bool_)
+    x = np.zeros((3, 3))
     inv = np.zeros((3, 3))
     for i in range(n):
-        x = s[i].copy()
-        size = np.sqrt(np.sum(x * x))
+        size = 0.0
+        for r in range(3):
+            for c in range(3):
+                size += s[i, r, c] * s[i, r, c]
         if size == 0.0:
-            out[i] = np.eye(3)
+            for r in range(3):
+                out[i, r, r] = 1.0
             continue
-        x /= size
+        scale = 1.0 / np.sqrt(size)
+        for r in range(3):
+            for c in range(3):
+                x[r, c] = s[i, r, c] * scale
         for _ in range(POLAR_ITERATIONS):
             det = (x[0, 0] * (x[1, 1] * x[2, 2] - x[1, 2] * x[2, 1])
                    - x[0, 1] * (x[1, 0] * x[2, 2] - x[1, 2] * x[2, 0])
@@ -116,7 +123,12 @@ def _polar_rotations(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma:
             inv[2, 0] = (x[0, 1] * x[1, 2] - x[0, 2] * x[1, 1]) / det
             inv[2, 1] = (x[0, 2] * x[1, 0] - x[0, 0] * x[1, 2]) / det
             inv[2, 2] = (x[0, 0] * x[1, 1] - x[0, 1] * x[1, 0]) / det
-            g = np.sqrt(np.sqrt(np.sum(inv * inv)) / np.sqrt(np.sum(x * x)))
+            norm_x, norm_inv = 0.0, 0.0
+            for r in range(3):
+                for c in range(3):
+                    norm_x += x[r, c] * x[r, c]
+                    norm_inv += inv[r, c] * inv[r, c]
+            g = np.sqrt(np.sqrt(norm_inv / norm_x))
             change = 0.0
             for r in range(3):
                 for c in range(3):
@@ -125,7 +137,9 @@ def _polar_rotations(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma:
                     x[r, c] = new
             if change < 1e-15:
                 break
-        out[i] = x
+        for r in range(3):
+            for c in range(3):
+                out[i, r, c] = x[r, c]
     return out, flagged
 
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from meshes.errors import InputError
 from models.shell.bending import hinge_weights
@@ -107,11 +108,20 @@ def face_normals(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def area_weighted_normals(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Sum of the incident faces' :func:`face_normals` per vertex (n, 3), not normalised."""
-    fn = face_normals(x, faces)
     n = np.zeros((x.shape[0], 3), dtype=np.float64)
-    for k in range(3):
-        np.add.at(n, faces[:, k], fn)
+    _add_corners(np.ascontiguousarray(faces, dtype=np.int64), face_normals(x, faces), n)
     return n
+
+
+@njit(cache=True)
+def _add_corners(faces: np.ndarray, values: np.ndarray,
+                 out: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """``out[faces[f, k]] += values[f]`` for k = 0, 1, 2 and f in order (``np.add.at``'s sums)."""
+    for k in range(3):
+        for f in range(faces.shape[0]):
+            v = faces[f, k]
+            for c in range(3):
+                out[v, c] += values[f, c]
 
 
 def vertex_normals(x: np.ndarray, faces: np.ndarray) -> np.ndarray:

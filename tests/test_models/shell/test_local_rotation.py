@@ -75,3 +75,23 @@ def test_the_states_must_be_the_surfaces_positions() -> None:
     bad[3, 1] = np.nan
     with pytest.raises(InputError, match="before"):
         local_rotations(bad, x, faces, edges)
+
+
+def test_vertex_normals_are_the_area_weighted_sums_of_their_faces() -> None:
+    """The compiled corner sums equal ``np.add.at``'s bit for bit (same order of additions):
+    the rest normals, and with them every run's imperfection, are those of before; each
+    normal is unit and, on the sphere, the outward radial direction to 2e-2 at level 3
+    (measured 1.1e-2)."""
+    from meshes.shells import irregular_plate
+    from models.shell.rest import area_weighted_normals, face_normals, vertex_normals
+
+    for x, faces in (irregular_plate(12, seed=3), icosphere(3)):
+        x = x + 0.01 * np.random.default_rng(1).standard_normal(x.shape)
+        expected = np.zeros_like(x)
+        for corner in range(3):
+            np.add.at(expected, faces[:, corner], face_normals(x, faces))
+        assert np.array_equal(area_weighted_normals(x, faces), expected)
+        assert np.allclose(np.linalg.norm(vertex_normals(x, faces), axis=1), 1.0)
+    x, faces = icosphere(3)
+    radial = x / np.linalg.norm(x, axis=1, keepdims=True)
+    assert np.abs(vertex_normals(x, faces) - radial).max() < 2e-2

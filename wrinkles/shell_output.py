@@ -72,11 +72,8 @@ class ShellFrame:
 
     def fields(self) -> dict[str, np.ndarray]:
         """Return the stored point fields by name, in :data:`FIELD_TYPES` order (None left out)."""
-        values = {"bending_energy_density": self.bending_energy_density,
-                  "displacement": self.displacement,
-                  "self_intersecting": self.self_intersecting}
-        return {name: np.asarray(values[name], dtype=np.float64) for name in FIELD_TYPES
-                if values[name] is not None}
+        return {name: np.asarray(getattr(self, name), dtype=np.float64) for name in FIELD_TYPES
+                if getattr(self, name) is not None}
 
 
 def _item(parent: ET.Element, h5_name: str, path: str, shape: tuple[int, ...],

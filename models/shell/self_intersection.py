@@ -32,6 +32,7 @@ import numba
 import numpy as np
 
 from meshes.errors import InputError
+from models.shell.dofs import check_positions
 
 SINGULAR: float = 1e-14
 """Relative determinant below which an edge is taken as parallel to a triangle's plane."""
@@ -142,10 +143,8 @@ def intersecting_faces(x: np.ndarray, faces: np.ndarray, threads: int = 1) -> np
         InputError: ``x`` is not (n, 3) finite, or ``faces`` index outside it.
 
     """
-    pts = np.ascontiguousarray(x, dtype=np.float64)
+    pts = check_positions(x, len(x), "positions")
     tri = np.ascontiguousarray(faces, dtype=np.int64)
-    if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
-        raise InputError(f"positions: expected (n, 3) finite floats, got shape {pts.shape}")
     if tri.ndim != 2 or tri.shape[1] != 3 or (tri.size and (tri.min() < 0
                                                             or tri.max() >= pts.shape[0])):
         raise InputError(f"faces: expected (F, 3) indices below {pts.shape[0]}")

@@ -48,6 +48,7 @@ from models.backend import (
     is_affine,
     ufl,
     vector_space,
+    with_facet_domains,
 )
 from models.body import NEWMARK_BETA, NEWMARK_GAMMA, BodyOptions, PinSpec
 from models.contact import PenaltyContact, exterior_facets, min_cell_size, penalty_stiffness
@@ -302,7 +303,18 @@ class Body:
                              f"({len(self._reaction)} defined)")
         return np.array([global_scalar(f) for f in self._reaction[index]])
 
-    def obstacle_compliance(self, indices: list[int]) -> np.ndarray:
+    def contact_domains(self) -> dict[int, Any] | None:
+        """Each obstacle's facets that carry its penalty at the current ``u`` (collective).
+
+        :meth:`solvers.contact_set.ActiveFacets.at`: forms of the obstacles' penalties
+        integrated over these facets (:func:`models.backend.with_facet_domains`) equal the
+        forms over all exterior facets. None: integrate over all (no obstacle, or a facet
+        left out is penetrated).
+        """
+        return None if self._active is None else self._active.at(self.u.x.array)
+
+    def obstacle_compliance(self, indices: list[int],
+                            domains: dict[int, Any] | None = None) -> np.ndarray:
         """``S = G^T A^{-1} G`` [N/m] of the sphere obstacles ``indices``, (3N, 3N) (collective).
 
         ``A`` is the Jacobian of the step's potential (the dynamic one when the body moves)
@@ -311,10 +323,16 @@ class Body:
         zero at the pins. Moving sphere ``j`` by ``dc`` moves the body in equilibrium by
         ``A^{-1} G_j dc``, so ``K_c - S`` is the stiffness of the spheres against the
         compliant body, ``dR/dc`` (Schur complement of ``A`` in the Hessian of body and
-        spheres together). One factorisation and ``3N`` solves.
+        spheres together). One factorisation and ``3N`` solves. ``domains``
+        (:meth:`contact_domains` at the current ``u``) integrates the obstacles' terms of ``A``
+        and ``G`` over the facets that carry them, the same sums.
         """
         solver = self._dynamic_solver or self._static_solver
-        A = solver.hessian()
+        solver.set_facet_domains(domains)
+        try:
+            A = solver.hessian()
+        finally:
+            solver.set_facet_domains(None)
         if self._compliance_ksp is None:
             self._compliance_ksp = PETSc.KSP().create(self.mesh.comm)
             self._compliance_ksp.setType("preonly")
@@ -329,6 +347,8 @@ class Body:
                 self._coupling_forms[i] = [dolfinx.fem.form(f) for f in
                                            self.contacts[i].center_coupling_forms(self.u, w)]
             for form in self._coupling_forms[i]:
+                if domains is not None:
+                    form = with_facet_domains(form, domains)
                 g: Any = dolfinx.fem.petsc.assemble_vector(form)
                 g.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
                 g.setValues(rows, np.zeros(rows.size))

@@ -95,22 +95,49 @@ class ActiveFacets:
         motion = (np.linalg.norm(points - self.surface.deformed(u_n), axis=2).max()
                   if points.size else 0.0)
         motion = float(self.comm.allreduce(float(motion), op=MPI.MAX))
-        margin = 2.0 * motion + SLACK * self.edge
-        domains = {}
-        for contact in self.contacts:
-            near = contact.gap_lower_bounds(points) < margin
-            self._near[contact.facet_id] = near
-            domains[contact.facet_id] = np.ascontiguousarray(self.pairs[near].ravel())
-            self.stats.facets += int(np.count_nonzero(near))
+        self._near = self._near_facets(points, 2.0 * motion + SLACK * self.edge)
+        self.stats.facets += sum(int(np.count_nonzero(near)) for near in self._near.values())
         self.stats.solves += 1
         self.stats.total += len(self.contacts) * self.pairs.shape[0]
-        return domains
+        return self._domains(self._near)
 
     def outside(self) -> float:
         """Return the penalty [J] over the facets the last selection left out (collective).
 
         Exactly ``0.0`` iff no facet left out has a quadrature point with ``g < 0``.
         """
-        rest = {i: np.ascontiguousarray(self.pairs[~near].ravel())
-                for i, near in self._near.items()}
+        return self._left_out(self._near)
+
+    def at(self, u: np.ndarray) -> dict[int, np.ndarray] | None:
+        """Each obstacle's facets that carry its penalty at the state ``u`` (collective).
+
+        The facets whose gap lower bound at ``u`` is below ``SLACK`` times the longest
+        exterior rest edge, checked as :meth:`outside` checks a solve's: ``None`` (integrate
+        over all facets) when a facet left out has a quadrature point with ``g < 0``. Any
+        form whose exterior-facet integrands carry the factor ``H(-g)`` of the penalty (its
+        energy, force, Jacobian, the sphere's centre stiffness) then sums to the same value
+        over these facets as over all of them: the terms left out are exact zeros.
+
+        Args:
+            u: The displacement's dof array (ghosts included).
+
+        Returns:
+            ``{facet_id: pairs}`` (:func:`models.backend.with_facet_domains`), or None.
+
+        """
+        near = self._near_facets(self.surface.deformed(u), SLACK * self.edge)
+        return self._domains(near) if self._left_out(near) == 0.0 else None
+
+    def _near_facets(self, points: np.ndarray, margin: float) -> dict[int, np.ndarray]:
+        """Per obstacle id, the mask of the facets whose gap lower bound is below ``margin``."""
+        return {contact.facet_id: contact.gap_lower_bounds(points) < margin
+                for contact in self.contacts}
+
+    def _domains(self, near: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """Return the ``(cell, local facet)`` pairs of the masked facets, per obstacle id."""
+        return {i: np.ascontiguousarray(self.pairs[mask].ravel()) for i, mask in near.items()}
+
+    def _left_out(self, near: dict[int, np.ndarray]) -> float:
+        """Return the obstacles' penalty [J] over the facets outside ``near`` (collective)."""
+        rest = {i: np.ascontiguousarray(self.pairs[~mask].ravel()) for i, mask in near.items()}
         return global_scalar(with_facet_domains(self.penalty, rest))

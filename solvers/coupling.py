@@ -29,7 +29,7 @@ from typing import Any, Literal
 import numpy as np
 
 from meshes.errors import InputError, SolverError
-from models.backend import MPI, dolfinx, global_scalar
+from models.backend import MPI, dolfinx, global_scalar, with_facet_domains
 from models.coupling import PenaltyCoupling
 from models.rigid import (
     BallState,
@@ -305,13 +305,18 @@ class BallCoupling:
         """``sum_i m_i w_i`` [kg m/s]."""
         return np.asarray(self.mass @ self.state.velocity, dtype=float)
 
-    def stiffness(self) -> np.ndarray:
-        """Block-diagonal ``dR/dc`` at fixed body [N/m], (3N, 3N)."""
+    def stiffness(self, domains: dict[int, Any] | None = None) -> np.ndarray:
+        """Block-diagonal ``dR/dc`` at fixed body [N/m], (3N, 3N).
+
+        ``domains`` (:meth:`solvers.body.Body.contact_domains` at the current state)
+        integrates each ball's stiffness over the facets that carry it, the same sums.
+        """
         n = len(self.indices)
         K = np.zeros((3 * n, 3 * n))
         for b, forms in enumerate(self._stiffness):
-            K[3 * b:3 * b + 3, 3 * b:3 * b + 3] = [[global_scalar(f) for f in row]
-                                                   for row in forms]
+            K[3 * b:3 * b + 3, 3 * b:3 * b + 3] = [
+                [global_scalar(f if domains is None else with_facet_domains(f, domains))
+                 for f in row] for row in forms]
         return K
 
     def interface_stiffness(self) -> np.ndarray:
@@ -324,10 +329,11 @@ class BallCoupling:
         buckling body) gives ``K_c`` itself, the stiffer secant the iteration started from
         before.
         """
-        K = self.stiffness()
+        domains = self.body.contact_domains()
+        K = self.stiffness(domains)
         if not np.any(K):
             return K
-        S = self.body.obstacle_compliance(self.indices)
+        S = self.body.obstacle_compliance(self.indices, domains)
         if np.linalg.eigvalsh(S).min() < -1e-12 * np.abs(S).max():
             return K
         return np.asarray(K - S)

@@ -358,6 +358,32 @@ def test_a_restored_ball_state_steps_as_the_uninterrupted_one():
     np.testing.assert_array_equal(resumed.previous_acceleration, arrays["acceleration"])
 
 
+def test_the_ball_stiffness_over_its_contact_facets_is_the_one_over_all_facets(monkeypatch):
+    """K_c and the compliance G^T A^{-1} G integrated over the facets that carry the ball's
+    penalty (``Body.contact_domains``) are the sums over all exterior facets; a selection
+    that leaves a penetrated facet out is refused (None: all facets)."""
+    import solvers.contact_set as contact_set
+
+    coupling = _ball_on_block()
+    for _ in range(3):
+        coupling.step()  # pressed in
+    body = coupling.body
+    domains = body.contact_domains()
+    assert domains is not None
+    ball = body.contacts[coupling.indices[0]].facet_id
+    kept, every = domains[ball].size // 2, body._active.pairs.shape[0]
+    K, K_all = coupling.stiffness(domains), coupling.stiffness()
+    S, S_all = (body.obstacle_compliance(coupling.indices, d) for d in (domains, None))
+    print(f"{kept} of {every} facets; |K - K_all| = {np.abs(K - K_all).max():.2e} of "
+          f"{np.abs(K_all).max():.3e} N/m, |S - S_all| = {np.abs(S - S_all).max():.2e} of "
+          f"{np.abs(S_all).max():.3e} N/m")
+    assert np.abs(K_all).max() > 0 and 0 < kept < every / 4
+    np.testing.assert_allclose(K, K_all, rtol=0, atol=1e-13 * np.abs(K_all).max())
+    np.testing.assert_allclose(S, S_all, rtol=0, atol=1e-12 * np.abs(S_all).max())
+    monkeypatch.setattr(contact_set, "SLACK", -2.0)  # a margin below the ball's dent
+    assert body.contact_domains() is None
+
+
 def test_an_indefinite_compliance_falls_back_to_the_rigid_stiffness():
     """A compliance G^T A^{-1} G that is not positive semidefinite (a body whose Jacobian is
     not positive definite) gives the rigid K_c, the secant used before; a semidefinite one
@@ -368,7 +394,7 @@ def test_an_indefinite_compliance_falls_back_to_the_rigid_stiffness():
     assert np.any(K)
     spd = np.diag([1.0, 2.0, 3.0])
     for S, expected in ((spd, K - spd), (-spd, K), (np.diag([1.0, -1e-3, 3.0]), K)):
-        coupling.body.obstacle_compliance = lambda indices, S=S: S  # type: ignore[method-assign]
+        coupling.body.obstacle_compliance = lambda indices, domains=None, S=S: S  # type: ignore[method-assign]
         np.testing.assert_array_equal(coupling.interface_stiffness(), expected)
 
 

@@ -327,7 +327,9 @@ class BallCoupling:
         under a moved sphere. Zero without contact (no body solve then). A compliance that
         is not positive semidefinite (the body's Jacobian is not positive definite, e.g. a
         buckling body) gives ``K_c`` itself, the stiffer secant the iteration started from
-        before.
+        before. Both are integrated over the facets that carry the obstacles' penalties at
+        the current state (:meth:`solvers.body.Body.contact_domains`), the same sums as
+        over every exterior facet.
         """
         domains = self.body.contact_domains()
         K = self.stiffness(domains)

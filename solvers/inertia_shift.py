@@ -15,9 +15,14 @@ with ``theta_min`` the smallest Ritz value of ``steps`` Lanczos steps on ``A`` (
 Matrix Computations, 4th ed., sec. 10.1). The Ritz values interlace the spectrum, so
 ``lambda_min <= theta_min``: the restart never lies above ``margin |lambda_min|``, and an
 underestimate only leaves the ladder to climb on from there. A dense negative spectrum (a
-buckling shell: hundreds of negative pivots) and the later iterations of a solve keep the
-plain ladder, whose decaying shifts follow the softest modes down; restarting there was
-measured to change the buckling path and cost iterations (docs/notes/solver-choice.md).
+buckling shell: hundreds of negative pivots) keeps the plain ladder, whose decaying shifts
+follow the softest modes down; so do the later iterations of a solve, where restarting at
+every indefinite attempt was measured to change the buckling path and cost iterations
+(docs/notes/solver-choice.md), except for an outlier: an attempt at ``tau`` whose estimate
+lies beyond ``OUTLIER max(tau, tau_floor)`` (a stencil whose curvature dwarfs the ladder's
+scale, e.g. a hinge across a sliver: docs/notes/sliver-hinges.md) restarts as well. A
+buckling path's decayed probe fails by less than its last accepted shift, a rung or two,
+and never meets that test.
 """
 
 from __future__ import annotations
@@ -34,6 +39,8 @@ MARGIN: float = 2.0
 """The restart shift as a multiple of ``|theta_min|`` (> 1: a margin over the estimate)."""
 ISOLATED_NEGATIVES: int = 16
 """Most negative pivots (beyond the expected ones) for which the ladder is restarted."""
+OUTLIER: float = 100.0
+"""A later iteration restarts when ``|theta_min|`` exceeds this times its attempt's shift."""
 
 
 def lowest_ritz_value(matvec: Callable[[np.ndarray], np.ndarray], n: int,
@@ -93,13 +100,17 @@ def restart_shifts(theta_min: float, growth: float, count: int,
 
 
 def restart_ladder(report: FactorReport, matvec: Callable[[np.ndarray], np.ndarray], n: int,
-                   shift: ShiftOptions) -> list[float]:
+                   shift: ShiftOptions, beyond: float = 0.0) -> list[float]:
     """Return the shifts that replace the ladder after the indefinite factorisation ``report``.
 
-    Empty (keep the ladder) unless its extra negative pivots are isolated (:func:`is_isolated`);
-    else ``shift.max_shifts`` shifts from ``MARGIN |theta_min|`` of the operator ``matvec`` of
-    order ``n`` (:func:`lowest_ritz_value`), growing by ``shift.growth``.
+    Empty (keep the ladder) unless its extra negative pivots are isolated (:func:`is_isolated`)
+    and ``|theta_min| > beyond``; else ``shift.max_shifts`` shifts from ``MARGIN |theta_min|``
+    of the operator ``matvec`` of order ``n`` (:func:`lowest_ritz_value`), growing by
+    ``shift.growth``. ``beyond`` > 0 restarts only for an outlier (module doc).
     """
     if not is_isolated(report.negative_pivots, report.expected_negative):
         return []
-    return restart_shifts(lowest_ritz_value(matvec, n), shift.growth, shift.max_shifts)
+    theta = lowest_ritz_value(matvec, n)
+    if not -theta > beyond:
+        return []
+    return restart_shifts(theta, shift.growth, shift.max_shifts)

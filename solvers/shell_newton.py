@@ -48,7 +48,7 @@ from meshes.errors import InputError, SolverError
 from models.shell.assembly import HESSIAN_MODES
 from models.shell.hinge_angle import hinge_angles
 from models.shell.rest import face_quality
-from solvers.inertia_shift import restart_ladder
+from solvers.inertia_shift import OUTLIER, restart_ladder
 from solvers.linear import (
     AugmentedPenaltySolver,
     DiagonalScale,
@@ -165,8 +165,9 @@ class ShellNewtonOptions:
         stagnation_iterations: Consecutive accepted steps without progress (W lowered by more
             than ``ROUNDOFF_FACTOR eps |W|`` or a new smallest ``||g||``) before the solve stops
             with :class:`ShellSolveError` naming the worst stencil.
-        inertia_restart: Restart the first iteration's shift ladder from a Lanczos estimate
-            (direct path, :mod:`solvers.inertia_shift`; False = the plain ladder).
+        inertia_restart: Restart the shift ladder from a Lanczos estimate in a solve's first
+            iteration, and in later ones for an outlier eigenvalue far beyond the attempt's
+            shift (direct path, :mod:`solvers.inertia_shift`; False = the plain ladder).
 
     """
 
@@ -723,7 +724,8 @@ class ShellNewtonSolver:
         ``near``: ``||g|| <= switch_rtol g_ref``; there the unshifted Hessian is always tried
         first (quadratic convergence), farther away the last successful shift is reused
         (:func:`solvers.linear.shift_candidates`). ``first``: the solve's first iteration, whose
-        ladder may restart from a Lanczos estimate (``inertia_restart``).
+        ladder may restart from a Lanczos estimate (``inertia_restart``; later iterations only
+        for an outlier).
         """
         assert ev.grad is not None  # order >= 1 evaluation
         if self.krylov is not None:
@@ -768,13 +770,14 @@ class ShellNewtonSolver:
             found.extend([direction] if direction is not None else [])
             return direction is not None
 
-        restartable = first and self.options.inertia_restart and self.krylov is None
+        restartable = self.options.inertia_restart and self.krylov is None
         start = self._last_shift / self.options.shift_decay
         if first:
             start = max(start, self._first_shift / self.options.shift.growth)
+        floor = None if first else max(self.options.shift.initial * scale, self._last_shift)
         reports = factorize_with_shift(factorize, scale, self.options.shift, start,
                                        accept, zero_first=near or None,
-                                       restart=self._restart(ev) if restartable else None)
+                                       restart=self._restart(ev, floor) if restartable else None)
         if not found:
             self._factor_age = 0
             return None
@@ -784,17 +787,26 @@ class ShellNewtonSolver:
         return self._step(x, ev, found[0], taus[-1], len(reports),
                           reports[0].negative_pivots, cg_before)
 
-    def _restart(self, ev: EnergyEval) -> Callable[[FactorReport], list[float]]:
+    def _restart(self, ev: EnergyEval,
+                 floor: float | None) -> Callable[[FactorReport], list[float]]:
         """Shifts from the Lanczos estimate of the full Hessian's smallest eigenvalue.
 
-        Used at the first iteration of a solve on the direct path, for a factorisation with a
-        few extra negative pivots (:mod:`solvers.inertia_shift`); the full Hessian is ``A +
-        G^T G`` when the penalty comes as the factor G.
+        Used on the direct path for a factorisation with a few extra negative pivots
+        (:mod:`solvers.inertia_shift`); the full Hessian is ``A + G^T G`` when the penalty
+        comes as the factor G. ``floor`` None: a solve's first iteration, any estimate
+        restarts; else a later one, where only an outlier beyond ``OUTLIER max(tau, floor)``
+        does, ``tau`` the attempt's shift and ``floor`` the larger of the ladder's first rung
+        and the previous iteration's shift (an unshifted attempt near the minimum is measured
+        against the shift the path came down from).
         """
         assert ev.hess is not None  # order-2 evaluation
         n = ev.hess.shape[0]
-        return lambda report: restart_ladder(report, lambda v: shifted_product(ev, 0.0, v), n,
-                                             self.options.shift)
+
+        def restart(report: FactorReport) -> list[float]:
+            beyond = 0.0 if floor is None else OUTLIER * max(report.shift, floor)
+            return restart_ladder(report, lambda v: shifted_product(ev, 0.0, v), n,
+                                  self.options.shift, beyond)
+        return restart
 
     def _direction(self, x: np.ndarray, ev: EnergyEval, timers: _Timers,
                    tau: float) -> _Direction | None:

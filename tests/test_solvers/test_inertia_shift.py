@@ -9,6 +9,7 @@ import scipy.sparse as sp
 from solvers.inertia_shift import (
     ISOLATED_NEGATIVES,
     MARGIN,
+    OUTLIER,
     is_isolated,
     lowest_ritz_value,
     restart_ladder,
@@ -84,3 +85,27 @@ def test_is_isolated_and_restart_shifts():
     assert not is_isolated(60 + ISOLATED_NEGATIVES + 1, 60) and not is_isolated(None, 0)
     assert restart_shifts(0.5, 10.0, 3) == []
     assert restart_shifts(-2.0, 10.0, 3) == pytest.approx([2 * MARGIN, 20 * MARGIN, 200 * MARGIN])
+
+
+def restarted_after(a: sp.csr_matrix, tau: float, floor: float) -> list[float]:
+    """The restart a later iteration gets after an indefinite attempt at ``tau`` (or none)."""
+    solver = SparseDirectSolver(a, LinearSolverOptions(symmetric="ldlt"))
+    report = solver.factorize(a, tau)
+    assert report.indefinite
+    return restart_ladder(report, lambda v: a @ v, a.shape[0], ShiftOptions(growth=10.0),
+                          beyond=OUTLIER * max(tau, floor))
+
+
+def test_a_later_iteration_restarts_only_for_an_outlier_beyond_its_attempt():
+    """An eigenvalue 1e4 below a spectrum whose ladder works at tau ~ 1 (a hinge across a
+    sliver) restarts the ladder just above it; a buckling probe that fails by a rung (the
+    same spectrum without the outlier, lambda_min -2 against an attempt at 1) keeps the
+    ladder, as does any attempt whose shift is within 1/OUTLIER of the outlier."""
+    soft = np.concatenate([[-2.0], np.linspace(1.0, 100.0, 119)])
+    spike = np.concatenate([[-1.0e4], soft[1:]])
+    shifts = restarted_after(known_spectrum(spike), 1.0, 1e-6)
+    print(f"outlier -1e4 after an attempt at 1: restart at {shifts[0]:.4g}")
+    assert 1.0e4 < shifts[0] <= MARGIN * 1.0e4 * (1 + 1e-3)
+    assert restarted_after(known_spectrum(soft), 1.0, 1e-6) == []
+    assert restarted_after(known_spectrum(spike), 200.0, 1e-6) == []  # 1e4 < OUTLIER * 200
+    assert restarted_after(known_spectrum(spike), 0.0, 200.0) == []   # the floor for tau = 0

@@ -165,9 +165,8 @@ class ShellNewtonOptions:
         stagnation_iterations: Consecutive accepted steps without progress (W lowered by more
             than ``ROUNDOFF_FACTOR eps |W|`` or a new smallest ``||g||``) before the solve stops
             with :class:`ShellSolveError` naming the worst stencil.
-        inertia_restart: Restart the shift ladder from a Lanczos estimate in a solve's first
-            iteration, and in later ones for an outlier eigenvalue far beyond the attempt's
-            shift (direct path, :mod:`solvers.inertia_shift`; False = the plain ladder).
+        inertia_restart: Restart the shift ladder from a Lanczos estimate (first iteration;
+            later ones for an outlier; direct path, :mod:`solvers.inertia_shift`).
 
     """
 

@@ -19,7 +19,8 @@ buckling shell: hundreds of negative pivots) keeps the plain ladder, whose decay
 follow the softest modes down; so do the later iterations of a solve, where restarting at
 every indefinite attempt was measured to change the buckling path and cost iterations
 (docs/notes/solver-choice.md), except for an outlier: an attempt at ``tau`` whose estimate
-lies beyond ``OUTLIER max(tau, tau_floor)`` (a stencil whose curvature dwarfs the ladder's
+lies beyond ``OUTLIER max(tau, floor)``, the floor the larger of the ladder's first rung and
+the previous iteration's shift (a stencil whose curvature dwarfs the ladder's
 scale, e.g. a hinge across a sliver: docs/notes/sliver-hinges.md) restarts as well. A
 buckling path's decayed probe fails by less than its last accepted shift, a rung or two,
 and never meets that test.
@@ -40,7 +41,8 @@ MARGIN: float = 2.0
 ISOLATED_NEGATIVES: int = 16
 """Most negative pivots (beyond the expected ones) for which the ladder is restarted."""
 OUTLIER: float = 100.0
-"""A later iteration restarts when ``|theta_min|`` exceeds this times its attempt's shift."""
+"""A later iteration restarts when ``|theta_min|`` exceeds this times the larger of its
+attempt's shift and the caller's floor (``restart_ladder``'s ``beyond``)."""
 
 
 def lowest_ritz_value(matvec: Callable[[np.ndarray], np.ndarray], n: int,

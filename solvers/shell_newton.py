@@ -548,6 +548,11 @@ class ShellNewtonSolver:
             ``linear_method`` names (the joint body-shell system of the two-way coupling,
             :class:`solvers.joint_krylov.JointKrylovSystem`).
 
+    Attributes:
+        hessian_product: ``(ev, v) -> (A + G^T G) v``, the full Hessian's product with a
+            (3n,) vector, for the Lanczos estimate of the shift ladder's restart; a solve
+            split over ranks sets its distributed product.
+
     """
 
     def __init__(self, energy: ShellEnergyLike, options: ShellNewtonOptions | None = None,
@@ -568,6 +573,8 @@ class ShellNewtonSolver:
                                                 self.options.multigrid, fallback=self.direct,
                                                 geometry=(hierarchy.vertices, hierarchy.faces))
             self.linear = self.krylov
+        self.hessian_product: Callable[[EnergyEval, np.ndarray], np.ndarray] = \
+            lambda ev, v: shifted_product(ev, 0.0, v)
         self._last_shift = 0.0
         self._first_shift = 0.0  # where the next solve's first iteration starts its shifts
         self._factor_age = 0  # iterations served by the current factorisation (0 = none)
@@ -792,18 +799,19 @@ class ShellNewtonSolver:
 
         Used on the direct path for a factorisation with a few extra negative pivots
         (:mod:`solvers.inertia_shift`); the full Hessian is ``A + G^T G`` when the penalty
-        comes as the factor G. ``floor`` None: a solve's first iteration, any estimate
-        restarts; else a later one, where only an outlier beyond ``OUTLIER max(tau, floor)``
-        does, ``tau`` the attempt's shift and ``floor`` the larger of the ladder's first rung
-        and the previous iteration's shift (an unshifted attempt near the minimum is measured
-        against the shift the path came down from).
+        comes as the factor G (its product :attr:`hessian_product`). ``floor`` None: a
+        solve's first iteration, any estimate restarts; else a later one, where only an
+        outlier beyond ``OUTLIER max(tau, floor)`` does, ``tau`` the attempt's shift and
+        ``floor`` the larger of the ladder's first rung and the previous iteration's shift
+        (an unshifted attempt near the minimum is measured against the shift the path came
+        down from).
         """
-        assert ev.hess is not None  # order-2 evaluation
-        n = ev.hess.shape[0]
+        assert ev.hess is not None and ev.grad is not None  # order-2 evaluation
+        n = ev.grad.size
 
         def restart(report: FactorReport) -> list[float]:
             beyond = 0.0 if floor is None else OUTLIER * max(report.shift, floor)
-            return restart_ladder(report, lambda v: shifted_product(ev, 0.0, v), n,
+            return restart_ladder(report, lambda v: self.hessian_product(ev, v), n,
                                   self.options.shift, beyond)
         return restart
 

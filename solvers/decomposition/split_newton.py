@@ -393,6 +393,22 @@ class SplitAugmentedSystem:
         """Accumulated (factorise, first factorisation incl. analysis, solve) seconds."""
         return self._times[0], self._times[1], self._times[2]
 
+    def hessian_product(self, ev: Any, v: np.ndarray) -> np.ndarray:
+        """Return ``(A + G^T G) v`` (3n,) on every rank: this rank's rows of A, allgathered.
+
+        The full Hessian of the serial solve (its ``shifted_product`` at ``tau = 0``), for the
+        shift ladder's Lanczos restart; ``v`` (3n,) is the same on every rank.
+        """
+        hess = ev.hess
+        if not isinstance(hess, OwnedRows):
+            raise InputError("SplitAugmentedSystem.hessian_product: expected the split "
+                             "energy's owned Hessian rows")
+        local = np.asarray(v, dtype=np.float64).reshape(-1, 3)[self.energy.patch.local]
+        out = self.energy.allgather_owned(hess.matrix @ local.reshape(-1))
+        if self.g is not None:
+            out += self.g.T @ (self.g @ v)
+        return out
+
 
 @dataclass(frozen=True)
 class SplitInfo:
@@ -425,8 +441,8 @@ class SplitNewtonSolver:
     picks the distributed Newton system: "direct", the augmented MUMPS LDL^T above
     (``options.augmented_linear``), or "multigrid", CG with the distributed geometric
     multigrid of :mod:`.split_multigrid` (``options.multigrid``; needs ``prolongations``).
-    The Lanczos restart of the shift ladder (``inertia_restart``) needs the whole Hessian on
-    one rank and is not used.
+    The shift ladder's Lanczos restart (``inertia_restart``, direct path) runs on the
+    distributed product :meth:`SplitAugmentedSystem.hessian_product`.
 
     Args:
         problem: The global shell problem (the same on every rank).
@@ -449,7 +465,7 @@ class SplitNewtonSolver:
         self.energy = SplitShellEnergy(problem, self.layout, self.comm)
         self.newton = ShellNewtonSolver(
             self.energy,  # type: ignore[arg-type]
-            replace(options, linear_method="direct", inertia_restart=False))
+            replace(options, linear_method="direct"))
         self.linear: SplitAugmentedSystem | SplitMultigridSystem
         if options.linear_method == "multigrid":
             if prolongations is None:
@@ -461,6 +477,7 @@ class SplitNewtonSolver:
             self.newton.krylov = self.linear
         else:
             self.linear = SplitAugmentedSystem(self.energy, g, options.augmented_linear)
+            self.newton.hessian_product = self.linear.hessian_product
         self.newton.linear = self.linear
         self._method = options.linear_method
 
@@ -472,7 +489,7 @@ class SplitNewtonSolver:
     @options.setter
     def options(self, value: ShellNewtonOptions) -> None:
         self._method = value.linear_method
-        self.newton.options = replace(value, linear_method="direct", inertia_restart=False)
+        self.newton.options = replace(value, linear_method="direct")
 
     @property
     def shift_state(self) -> np.ndarray:

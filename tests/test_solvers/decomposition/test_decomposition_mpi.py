@@ -77,6 +77,11 @@ def test_split_low_rank_newton_equals_serial(mpiexec) -> None:
     # the same shifted retries as the serial solve: the inertia test (INFOG(12) > 3c) sees
     # the negative eigenvalues on 2 ranks too (ICNTL(13) = 1; ScaLAPACK's root hid them)
     assert out["factorizations"] == out["factorizations_ref"] > out["iterations"]
+    # the shift ladder's Lanczos restart on the distributed product: the full Hessian's
+    # product is the serial one, so are the estimates, call by call
+    assert out["product_error"] < 1e-13
+    assert out["ritz_count"] == out["ritz_count_ref"] > 0
+    assert out["ritz_diff"] < 1e-10
 
 
 @pytest.mark.mpi

@@ -18,6 +18,7 @@ from solvers.decomposition.split_newton import (
     SplitNewtonSolver,
     rank_of_vertices,
 )
+from solvers.multigrid import shifted_product
 from solvers.shell_newton import ShellNewtonOptions, minimize
 
 CASE = PlateCase(cells=12, compression=0.07, params=ShellParams(penalty_hessian="low_rank"))
@@ -63,6 +64,19 @@ def test_split_solve_on_one_rank_equals_serial_augmented_solve() -> None:
     assert abs(rep.energy - ref.energy) <= 1e-12 * abs(ref.energy)
     assert np.abs(x - x_ref).max() < 1e-8
     assert solver.info().symbolic_analyses == 1
+
+
+def test_split_hessian_product_on_one_rank_is_the_serial_full_hessian() -> None:
+    """The product the shift ladder's Lanczos restart runs on: ``(A + G^T G) v``."""
+    problem, partition, x0 = plate_problem(CASE)
+    solver = SplitNewtonSolver(problem, partition, comm=MPI.COMM_SELF)
+    assert solver.newton.hessian_product == solver.linear.hessian_product
+    v = np.random.default_rng(3).standard_normal(x0.size)
+    split = solver.newton.hessian_product(solver.energy.evaluate(x0), v)
+    ev = problem.energy().evaluate(x0)
+    serial = shifted_product(ev, 0.0, v)
+    assert np.abs(split - serial).max() <= 1e-13 * np.abs(serial).max()
+    assert np.abs(serial - ev.hess @ v).max() > 1e-5 * np.abs(serial).max()  # G^T G counts
 
 
 def test_prolong_reproduces_bilinear_fields() -> None:

@@ -1,6 +1,6 @@
 """The shell Newton's linear solver and thread count when a scene leaves them to the code.
 
-Three choices, all by what the run is, not by flags:
+The choices, all by what the run is, not by flags:
 
 * **Linear method by size and structure.** The Newton system is solved by CG with geometric
   multigrid on the subdivision hierarchy (:mod:`solvers.multigrid`) when the shell has at
@@ -21,6 +21,12 @@ Three choices, all by what the run is, not by flags:
   A shell of a dynamic scene (a body struck or dropped: the indefiniteness comes with the
   contact's transient and is gone after a step or two) keeps the textbook growth 10, decay 10
   (:func:`choose_shift_schedule`; docs/notes/shift-schedule.md).
+* **Factorisation reuse by the load.** A shell of a dynamic scene moves little between the
+  frames of its time steps: its Newton reuses one factorisation (or one multigrid set-up)
+  across iterations and into the next frame while the steps keep reducing the gradient
+  (modified Newton, :class:`solvers.shell_newton.ModifiedNewtonOptions`). A static load
+  sequence factorises at every iteration: there the reuse leads the wrinkles onto other
+  branches (:func:`choose_factor_reuse`; docs/notes/factor-reuse.md).
 * **Threads by cores and size.** A serial run of a shell of at least
   :data:`THREADS_FROM_VERTICES` vertices uses the cores this process may run on (its CPU
   affinity, which batch systems and ``taskset`` set); a smaller shell keeps one thread (the
@@ -99,6 +105,25 @@ def choose_shift_schedule(static: bool) -> dict[str, float | int]:
 
     """
     return dict(STATIC_SHIFTS if static else DYNAMIC_SHIFTS)
+
+
+def choose_factor_reuse(static: bool) -> dict[str, bool]:
+    """Return whether the shell Newton reuses its factorisation (ShellNewtonOptions path).
+
+    Args:
+        static: the body is solved as statics (a load sequence), not as dynamics.
+
+    Returns:
+        ``{"modified.enabled": not static}``: the dynamic scenes' frames reuse the previous
+        iteration's (and frame's) factorisation while a step reduces ``||g||`` at least by
+        :attr:`~solvers.shell_newton.ModifiedNewtonOptions.refresh_ratio`; measured on
+        ``wrinkles run`` over imperfection seeds (docs/notes/factor-reuse.md): the same
+        minimisers, a third to a half fewer factorisations. The static wrinkle scenes keep
+        Newton's factorisation per iteration (reused, the default scene's wrinkles take
+        another branch: docs/notes/presets.md).
+
+    """
+    return {"modified.enabled": not static}
 
 
 PHASE_SPACE_FROM_VERTICES: int = 8000

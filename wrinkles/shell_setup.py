@@ -58,6 +58,7 @@ from solvers.decomposition.split_newton import SplitNewtonSolver
 from solvers.multigrid import ShellHierarchy
 from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver
 from solvers.solver_choice import (
+    choose_factor_reuse,
     choose_linear_method,
     choose_phase_space,
     choose_shift_schedule,
@@ -342,14 +343,15 @@ def resolve_solver(options: ShellOptions, vertices: int, ranks: int, *,
 
     "auto" becomes the method for a shell of ``vertices`` vertices and its subdivision levels,
     threads 0 the count for that size and ``ranks``, an unset :data:`PHASE_SPACE_KEY` the
-    phase-space choice for that size, and each unset key of the shift ladder the one for a
-    ``static`` load or a dynamic one (:mod:`solvers.solver_choice`); the internal options are
+    phase-space choice for that size, and each unset key of the shift ladder and of the
+    factorisation reuse the one for a ``static`` load or a dynamic one
+    (:mod:`solvers.solver_choice`); the internal options are
     rebuilt from them, so every later reader sees the choice. The vertex count is the whole
     shell's, so every rank count chooses alike.
     """
+    by_load = {**choose_shift_schedule(static), **choose_factor_reuse(static)}
     chosen = {PHASE_SPACE_KEY: choose_phase_space(vertices),
-              **{f"newton.{key}": value
-                 for key, value in choose_shift_schedule(static).items()}}
+              **{f"newton.{key}": value for key, value in by_load.items()}}
     expert_keys = {**{key: value for key, value in chosen.items()
                       if key not in options.solver.options}, **options.solver.options}
     solver = dataclasses.replace(options.solver,
@@ -366,7 +368,8 @@ def solver_facts(options: ShellOptions) -> dict[str, Any]:
     newton = options.internals.newton
     return {"method": options.solver.method, "threads": options.solver.threads,
             "phase_space": newton.multigrid.phase_space,
-            "shifts": f"x{newton.shift.growth:g} / {newton.shift_decay:g}"}
+            "shifts": f"x{newton.shift.growth:g} / {newton.shift_decay:g}",
+            "factor_reuse": newton.modified.enabled}
 
 
 def mean_edge_length(x: np.ndarray, topology: ShellTopology) -> float:

@@ -87,9 +87,12 @@ def minimize_from_state(shell: Shell, solver: ShellNewtonSolver | SplitNewtonSol
 
     :func:`scale_tolerance`, then the solver's shift memory is set from ``shell.shifts`` and,
     however the solve ends, written back: the checkpoint carries it, so a resumed run takes
-    the steps of the run it continues (bit for bit on the direct path; on the multigrid path
-    the coarser levels keep the Chebyshev bounds of their KSP's first set-up, a resumed run's
-    first frame, so it reaches the same minimisers to the solver's tolerance).
+    the steps of the run it continues (bit for bit on the direct path of a static scene; on
+    the multigrid path the coarser levels keep the Chebyshev bounds of their KSP's first
+    set-up, a resumed run's first frame, and a dynamic scene's first frame reuses the
+    previous frame's factorisation, which a checkpoint does not hold
+    (:func:`solvers.solver_choice.choose_factor_reuse`): these reach the same minimisers to
+    the solver's tolerance).
 
     Raises:
         ShellSolveError: as ``solver.minimize``.

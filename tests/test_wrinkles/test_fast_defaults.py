@@ -119,6 +119,33 @@ def test_the_shift_ladder_follows_the_load_unless_an_expert_key_names_it(name, l
     assert (named.shift_decay, named.shift.growth) == (3.0, ladder[0])
 
 
+@pytest.mark.parametrize(("name", "reuse"), [
+    ("default", False), ("bent_bar", False), ("two_way_bar", False),
+    ("ball_sofa_coarse", True), ("ball_sofa", True), ("bunny_drop", True)])
+def test_the_factorisation_reuse_follows_the_load_unless_an_expert_key_names_it(name, reuse):
+    """Dynamic scenes reuse the shell Newton's factorisation across iterations and frames,
+    static ones factorise every iteration (docs/notes/factor-reuse.md), with no key in the
+    scene; a ``[shell.solver.options]`` key wins; the library's default is Newton."""
+    from solvers.shell_newton import ShellNewtonOptions
+    from wrinkles.shell_setup import resolve_solver, solver_facts
+
+    path = REPO / "scenes" / f"{name}.toml"
+    if "meshes_external" in path.read_text() and not EXTERNAL_MESHES.is_dir():
+        pytest.skip("the scene uses ../shared/meshes_external, not beside this checkout")
+    scene = load_scene(path, [])
+    assert scene.shell is not None
+    static = scene.body.dynamics == "static"
+    chosen = resolve_solver(scene.shell, 5000, ranks=1, static=static)
+    assert chosen.internals.newton.modified.enabled is reuse
+    assert solver_facts(chosen)["factor_reuse"] is reuse
+    assert not ShellNewtonOptions().modified.enabled
+    keyed = load_scene(path, [f"shell.solver.options={{'newton.modified.enabled' = "
+                              f"{str(not reuse).lower()}}}"])
+    assert keyed.shell is not None
+    named = resolve_solver(keyed.shell, 5000, ranks=1, static=static).internals.newton
+    assert named.modified.enabled is (not reuse)
+
+
 @pytest.mark.parametrize("vertices", [2610, 41730])
 def test_the_scene_resolves_the_phase_space_by_size_unless_it_names_it(vertices):
     """An unset ``newton.multigrid.phase_space`` is chosen by the shell's size
@@ -132,7 +159,7 @@ def test_the_scene_resolves_the_phase_space_by_size_unless_it_names_it(vertices)
     assert solver_facts(chosen) == {"method": chosen.solver.method,
                                     "threads": chosen.solver.threads,
                                     "phase_space": choose_phase_space(vertices),
-                                    "shifts": "x5 / 2"}
+                                    "shifts": "x5 / 2", "factor_reuse": False}
     for written in (True, False):
         options = ShellOptions(solver=SolverKeys(options={PHASE_SPACE_KEY: written}))
         kept = resolve_solver(options, vertices, ranks=1, static=True)

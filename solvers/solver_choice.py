@@ -118,9 +118,9 @@ def choose_factor_reuse(static: bool) -> dict[str, bool]:
         iteration's (and frame's) factorisation while a step reduces ``||g||`` at least by
         :attr:`~solvers.shell_newton.ModifiedNewtonOptions.refresh_ratio`; measured on
         ``wrinkles run`` over imperfection seeds (docs/notes/factor-reuse.md): the same
-        minimisers, a third to a half fewer factorisations. The static wrinkle scenes keep
-        Newton's factorisation per iteration (reused, the default scene's wrinkles take
-        another branch: docs/notes/presets.md).
+        minimisers with fewer factorisations and less CPU on one and on two ranks. The static
+        wrinkle scenes keep one factorisation per Newton iteration (with the reuse the
+        default scene's wrinkles take another branch: docs/notes/presets.md).
 
     """
     return {"modified.enabled": not static}

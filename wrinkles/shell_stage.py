@@ -89,10 +89,10 @@ def minimize_from_state(shell: Shell, solver: ShellNewtonSolver | SplitNewtonSol
     however the solve ends, written back: the checkpoint carries it, so a resumed run takes
     the steps of the run it continues (bit for bit on the direct path of a static scene; on
     the multigrid path the coarser levels keep the Chebyshev bounds of their KSP's first
-    set-up, a resumed run's first frame, and a dynamic scene's first frame reuses the
-    previous frame's factorisation, which a checkpoint does not hold
-    (:func:`solvers.solver_choice.choose_factor_reuse`): these reach the same minimisers to
-    the solver's tolerance).
+    set-up, a resumed run's first frame, and a dynamic scene's frame starts from the
+    previous frame's factorisation (:func:`solvers.solver_choice.choose_factor_reuse`),
+    which a checkpoint does not hold, so its resumed first frame factorises afresh: these
+    reach the same minimisers to the solver's tolerance).
 
     Raises:
         ShellSolveError: as ``solver.minimize``.

@@ -9,6 +9,9 @@ shell energies within the spread measured between solver paths, the frame-1 wave
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 import pytest
 from support import EXTERNAL_MESHES, REPO
 
@@ -91,6 +94,17 @@ def test_scenes_restart_the_shift_ladder_by_default_and_the_solver_does_not():
     assert not ShellNewtonOptions().inertia_restart
 
 
+def _shipped_scene(name: str) -> tuple[Path, Any, bool]:
+    """``scenes/NAME.toml``, its loaded scene (with a shell) and whether its load is static;
+    skipped where it needs ../shared/meshes_external and that is not beside the checkout."""
+    path = REPO / "scenes" / f"{name}.toml"
+    if "meshes_external" in path.read_text() and not EXTERNAL_MESHES.is_dir():
+        pytest.skip("the scene uses ../shared/meshes_external, not beside this checkout")
+    scene = load_scene(path, [])
+    assert scene.shell is not None
+    return path, scene, scene.body.dynamics == "static"
+
+
 @pytest.mark.parametrize(("name", "ladder"), [
     ("default", (5.0, 2.0, 20)), ("bent_bar", (5.0, 2.0, 20)), ("two_way_bar", (5.0, 2.0, 20)),
     ("ball_sofa_coarse", (10.0, 10.0, 14)), ("bunny_drop", (10.0, 10.0, 14))])
@@ -102,12 +116,7 @@ def test_the_shift_ladder_follows_the_load_unless_an_expert_key_names_it(name, l
     from solvers.solver_choice import choose_shift_schedule
     from wrinkles.shell_setup import resolve_solver
 
-    path = REPO / "scenes" / f"{name}.toml"
-    if "meshes_external" in path.read_text() and not EXTERNAL_MESHES.is_dir():
-        pytest.skip("the scene uses ../shared/meshes_external, not beside this checkout")
-    scene = load_scene(path, [])
-    assert scene.shell is not None
-    static = scene.body.dynamics == "static"
+    path, scene, static = _shipped_scene(name)
     newton = resolve_solver(scene.shell, 5000, ranks=1, static=static).internals.newton
     assert (newton.shift.growth, newton.shift_decay, newton.shift.max_shifts) == ladder
     assert choose_shift_schedule(static)["shift_decay"] == ladder[1]
@@ -129,12 +138,7 @@ def test_the_factorisation_reuse_follows_the_load_unless_an_expert_key_names_it(
     from solvers.shell_newton import ShellNewtonOptions
     from wrinkles.shell_setup import resolve_solver, solver_facts
 
-    path = REPO / "scenes" / f"{name}.toml"
-    if "meshes_external" in path.read_text() and not EXTERNAL_MESHES.is_dir():
-        pytest.skip("the scene uses ../shared/meshes_external, not beside this checkout")
-    scene = load_scene(path, [])
-    assert scene.shell is not None
-    static = scene.body.dynamics == "static"
+    path, scene, static = _shipped_scene(name)
     chosen = resolve_solver(scene.shell, 5000, ranks=1, static=static)
     assert chosen.internals.newton.modified.enabled is reuse
     assert solver_facts(chosen)["factor_reuse"] is reuse

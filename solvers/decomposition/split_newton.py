@@ -288,6 +288,14 @@ def _coo_pattern(energy: SplitShellEnergy, hess_rows: sp.csr_matrix,
                 p_vals, diag)
 
 
+def _owned_rows(ev: Any, caller: str) -> OwnedRows:
+    """Return the split energy's Hessian rows of ``ev`` (InputError naming ``caller`` if not)."""
+    if not isinstance(ev.hess, OwnedRows):
+        raise InputError(f"SplitAugmentedSystem.{caller}: expected the split energy's owned "
+                         "Hessian rows")
+    return ev.hess
+
+
 class SplitAugmentedSystem:
     """The distributed augmented Newton system (the ShellNewtonSolver linear interface).
 
@@ -336,10 +344,7 @@ class SplitAugmentedSystem:
 
     def factorize(self, ev: Any, tau: float) -> FactorReport:
         """Insert this rank's rows of the augmented matrix with ``A + tau I``; factorise."""
-        hess = ev.hess
-        if not isinstance(hess, OwnedRows):
-            raise InputError("SplitAugmentedSystem.factorize: expected the split energy's "
-                             "owned Hessian rows")
+        hess = _owned_rows(ev, "factorize")
         if self.mat is None:
             self._setup(hess.matrix)
         n_hess = self._coo.n_hess
@@ -399,10 +404,7 @@ class SplitAugmentedSystem:
         The full Hessian of the serial solve (its ``shifted_product`` at ``tau = 0``), for the
         shift ladder's Lanczos restart; ``v`` (3n,) is the same on every rank.
         """
-        hess = ev.hess
-        if not isinstance(hess, OwnedRows):
-            raise InputError("SplitAugmentedSystem.hessian_product: expected the split "
-                             "energy's owned Hessian rows")
+        hess = _owned_rows(ev, "hessian_product")
         local = np.asarray(v, dtype=np.float64).reshape(-1, 3)[self.energy.patch.local]
         out = self.energy.allgather_owned(hess.matrix @ local.reshape(-1))
         if self.g is not None:

@@ -15,11 +15,12 @@ rows sum to 1 and linear (P1, P2) and quadratic (P2) fields are reproduced exact
 Point location: dolfinx's bounding-box tree over the rank's *owned* cells proposes candidates,
 the affine barycentric coordinates keep the cells that contain the point (smallest
 coordinate >= -facet_tolerance, so points on facets are found; distance 0). A point found in
-no cell (Loop subdivision moves vertices slightly off the coarse surface) gets as candidates
-the closest owned cell (``compute_closest_entity``) and that cell's vertex neighbours, with
-their distances, and uses *extrapolated* weights (the same formula, some barycentric
-coordinates negative: still exact for linear fields) when the distance is at most the
-tolerance of ``EmbeddingOptions``; otherwise ``InputError`` names the point and its distance.
+no cell of any rank (Loop subdivision moves vertices slightly off the coarse surface) gets as
+candidates the closest owned cell (``compute_closest_entity``) and that cell's vertex
+neighbours, with their distances, and uses *extrapolated* weights (the same formula, some
+barycentric coordinates negative: still exact for linear fields) when the distance is at most
+the tolerance of ``EmbeddingOptions``; otherwise ``InputError`` names the point and its
+distance.
 
 Parallel layout (deterministic, rank-count independent): every rank holds all shell points.
 Among the candidates of all ranks a point takes the cell with the smallest distance, ties
@@ -270,7 +271,7 @@ def _closest_pairs(mesh: Any, tree: Any, owned: npt.NDArray[np.int32], points: F
 
 def candidate_cells(mesh: Any, maps: AffineMaps, points: FloatArray, options: EmbeddingOptions
                     ) -> tuple[IntArray, IntArray, FloatArray]:
-    """Candidate owned cells of every point and their distances (0 inside).
+    """Candidate owned cells of every point and their distances (0 inside) (collective).
 
     Args:
         mesh: the dolfinx mesh.
@@ -280,13 +281,17 @@ def candidate_cells(mesh: Any, maps: AffineMaps, points: FloatArray, options: Em
 
     Returns:
         ``(point, cell, distance)`` arrays: the cells containing a point, or, for a point in
-        no owned cell, the closest owned cell and its vertex neighbours.
+        no cell of any rank, the closest owned cell and its vertex neighbours. A point inside
+        another rank's cell gets no candidate here, as a point found inside a cell gets no
+        closest cell on one rank: every partition has the candidates of the serial run.
 
     """
     owned = np.arange(mesh.topology.index_map(3).size_local, dtype=np.int32)
     tree = dolfinx.geometry.bb_tree(mesh, 3, padding=options.padding, entities=owned)
     pt_in, cell_in = _colliding_pairs(maps, tree, points, options.facet_tolerance)
-    miss = np.setdiff1d(np.arange(points.shape[0]), pt_in)
+    inside = np.zeros(points.shape[0], dtype=np.int8)
+    inside[pt_in] = 1
+    miss = np.flatnonzero(_allreduce(mesh.comm, inside, MPI.MAX) == 0)
     exact_tree = dolfinx.geometry.bb_tree(mesh, 3, entities=owned)
     pt_out, cell_out, d_out = _closest_pairs(mesh, exact_tree, owned, points, miss)
     return (np.concatenate([pt_in, pt_out]), np.concatenate([cell_in, cell_out]),

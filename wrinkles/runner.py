@@ -34,6 +34,7 @@ rank raises the same error and no rank waits forever in a collective call.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import resource
@@ -260,14 +261,26 @@ def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False,
     """Build mesh, body, balls and shell, then create the output and the stages (collective).
 
     Everything that can be refused (the output directory, the mesh, the shell set-up and its
-    memory) is checked before the first file is written. With ``restart`` the body state, the
+    memory) is checked before the first file is written; an output directory created for a
+    run whose set-up is refused is removed again. With ``restart`` the body state, the
     frame records and the XDMF series are taken over from the run in ``out`` (its last
     completed frame); otherwise a new run starts at t = 0, into a directory that holds no
     other run unless ``overwrite`` (then that run's files are removed first). ``log`` (rank 0)
     announces each set-up stage as it ends.
     """
     say = stage_logger(log if comm.rank == 0 else None)
-    on_root(comm, lambda: check_output_dir(out, restart, overwrite))
+    created = on_root(comm, lambda: check_output_dir(out, restart, overwrite))
+    try:
+        return _prepare(scene, out, comm, restart, overwrite, say)
+    except BaseException:
+        if created:  # rank 0 created it; removed only while it is still empty
+            remove_if_empty(out)
+        raise
+
+
+def _prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool, overwrite: bool,
+             say: Callable[[str], None]) -> Run:
+    """:func:`prepare` after the output directory was checked (collective)."""
     mesh = distributed_mesh(scene.mesh, comm)
     cells = mesh.topology.index_map(3).size_global
     say(f"mesh: {cells} tets on {comm.size} rank(s)")
@@ -534,11 +547,14 @@ RUN_FILES: tuple[str, ...] = (*RUN_MARKERS, "body.h5", "body.steps", "shell.h5",
 """What a run writes into its output directory (``--overwrite`` removes these, nothing else)."""
 
 
-def check_output_dir(out: Path, resume: bool, overwrite: bool) -> None:
+def check_output_dir(out: Path, resume: bool, overwrite: bool) -> bool:
     """Refuse an output directory that holds another run; create ``out`` and probe writing.
 
     A new run never mixes its files with another's: ``out`` may not hold a run's files
     unless the run is resumed (``--resume``) or replaced (``--overwrite``).
+
+    Returns:
+        Whether ``out`` was created here (it did not exist before).
 
     Raises:
         InputError: ``out`` is a file, holds another run, cannot be created or written.
@@ -552,6 +568,7 @@ def check_output_dir(out: Path, resume: bool, overwrite: bool) -> None:
     if found and not (resume or overwrite):
         raise InputError(f"--out {out}: holds another run ({', '.join(found)}); use --resume "
                          f"to continue it or --overwrite to replace it")
+    created = not out.exists()
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / ".write_probe"
@@ -560,6 +577,13 @@ def check_output_dir(out: Path, resume: bool, overwrite: bool) -> None:
     except OSError as exc:
         raise InputError(f"--out {out}: cannot write the output directory "
                          f"({exc.strerror or exc})") from None
+    return created
+
+
+def remove_if_empty(out: Path) -> None:
+    """Remove the directory ``out`` if it holds nothing (a refused run leaves no trace)."""
+    with contextlib.suppress(OSError):
+        out.rmdir()
 
 
 def clear_run(out: Path) -> None:

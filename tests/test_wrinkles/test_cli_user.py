@@ -41,14 +41,19 @@ def test_overwrite_replaces_the_run_and_keeps_other_files(tmp_path):
 
 def test_a_run_refused_at_set_up_writes_nothing(tmp_path):
     """A shell that cannot be built (here: too large for the machine) is refused before the
-    first file is written, and the exit is a one-line bad-input error."""
+    first file is written, and the exit is a one-line bad-input error. The output directory
+    the run created is gone again; one the user had stays."""
+    too_large = ("--set", "shell.subdivision.levels=12")
     out = tmp_path / "out"
-    proc = wrinkles("run", str(DEFAULT_SCENE), "--out", str(out), "--set",
-                    "shell.subdivision.levels=12")
+    proc = wrinkles("run", str(DEFAULT_SCENE), "--out", str(out), *too_large)
     assert proc.returncode == 1, proc.stderr
     assert "shell.subdivision.levels = 12: the shell would have about" in proc.stderr
     assert "GiB available" in proc.stderr and "Traceback" not in proc.stderr
-    assert not out.exists() or not any(out.iterdir())
+    assert not out.exists()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    assert wrinkles("run", str(DEFAULT_SCENE), "--out", str(mine), *too_large).returncode == 1
+    assert mine.is_dir() and not any(mine.iterdir())
 
 
 def test_memory_estimate_of_the_levels():

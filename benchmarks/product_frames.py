@@ -215,14 +215,18 @@ def spread_table(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return table
 
 
-def _stats(values: list[float]) -> dict[str, float]:
-    """Mean, population standard deviation, min and max."""
+def _stats(values: list[float]) -> dict[str, float | None]:
+    """Mean, population standard deviation, min and max; None where a value is NaN (no shell)."""
+    if any(v != v for v in values):
+        return {"mean": None, "sd": None, "min": None, "max": None}
     return {"mean": statistics.fmean(values), "sd": statistics.pstdev(values),
             "min": min(values), "max": max(values)}
 
 
-def _shown(stats: dict[str, float], fmt: str) -> str:
-    """``mean [min - max]``."""
+def _shown(stats: dict[str, float | None], fmt: str) -> str:
+    """``mean [min - max]``, or ``-`` without values."""
+    if stats["mean"] is None:
+        return "-"
     return f"{stats['mean']:{fmt}} [{stats['min']:{fmt}} - {stats['max']:{fmt}}]"
 
 

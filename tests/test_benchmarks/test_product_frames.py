@@ -64,3 +64,13 @@ def test_the_spread_table_gives_mean_min_and_max_over_the_seeds_and_counts_faile
     assert entry["frames_time"]["mean"] == 3.0 and entry["frames_time"]["sd"] == 1.0
     assert entry["final_energy"]["min"] == 0.5 and entry["final_energy"]["max"] == 0.7
     assert entry["failed_percent"]["mean"] == (100 * 5 / 35 + 100 * 10 / 50) / 2
+
+
+def test_the_spread_of_a_scene_without_a_shell_has_times_and_no_energy():
+    rows = [{"scene": "drop_block", "code": "this", "ranks": 1, "seed": seed, "exit": 0,
+             "shell_iterations": [0, 0], "factorizations": [0, 0],
+             "failed_factorizations": [0, 0], "frames_cpu": cpu, "frames_wall": cpu,
+             "shell_energy": [None, None]} for seed, cpu in ((0, 0.4), (1, 0.6))]
+    (entry,) = spread_table(rows)
+    assert entry["frames_time"]["mean"] == 0.5
+    assert entry["final_energy"] == {"mean": None, "sd": None, "min": None, "max": None}

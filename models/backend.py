@@ -31,7 +31,8 @@ from petsc4py import PETSc  # noqa: E402
 __all__ = ["MPI", "PETSc", "basix", "dolfinx", "ufl", "DOLFINX_VERSION", "begin_petsc_log",
            "mesh_from_arrays",
            "vector_space", "is_affine", "global_scalar", "quadrature_expression",
-           "global_min_on_cells", "exterior_facet_domain", "with_facet_domains"]
+           "global_min_on_cells", "exterior_facet_domain", "with_facet_domains",
+           "assemble_snes_residual"]
 
 DOLFINX_VERSION: str = dolfinx.__version__
 
@@ -170,6 +171,36 @@ def with_facet_domains(form: dolfinx.fem.Form,
     rebuilt = dolfinx.fem.forms.form_cpp_class(form.dtype)(
         [ptr], cpp.function_spaces, cpp.coefficients, cpp.constants, subdomains, [], cpp.mesh)
     return dolfinx.fem.Form(rebuilt, form.ufcx_form, form.code, form.module)
+
+
+def assemble_snes_residual(x: Any, b: Any, u: dolfinx.fem.Function,
+                           residual: dolfinx.fem.Form, jacobian: dolfinx.fem.Form,
+                           bcs: list[dolfinx.fem.DirichletBC], work: Any) -> None:
+    """Assemble the SNES residual of ``residual`` at ``x`` into ``b``, as dolfinx does (collective).
+
+    dolfinx's ``assemble_residual`` assembles ``F(x)``, lifts the Dirichlet values, ``b -= J
+    (g - x)`` on the rows coupled to Dirichlet dofs, and sets ``b = x - g`` on the Dirichlet
+    rows. Where ``x`` already equals ``g`` on every Dirichlet dof (``max |x - g| = 0``, tested
+    in ``work``, a vector of ``b``'s layout) the lifting adds exactly zero and is left out:
+    the same vector, without packing the Jacobian form's coefficients and assembling its
+    cells at the boundary. A Newton iteration from a start that meets its Dirichlet values
+    stays there (identity rows, zero residual rows). Otherwise dolfinx's assembly runs.
+    """
+    fem: Any = dolfinx.fem.petsc  # singledispatch functions: (Vec, Form) overloads
+    insert, add = PETSc.InsertMode.INSERT, PETSc.InsertMode.ADD
+    x.ghostUpdate(addv=insert, mode=PETSc.ScatterMode.FORWARD)
+    work.zeroEntries()
+    fem.set_bc(work, bcs, x0=x, alpha=-1.0)
+    if work.norm(PETSc.NormType.NORM_INFINITY) != 0.0:
+        fem.assemble_residual(None, x, b, u, residual, jacobian, bcs)
+        return
+    fem.assign(x, u)
+    with b.localForm() as local:
+        local.set(0.0)
+    fem.assemble_vector(b, residual)
+    b.ghostUpdate(addv=add, mode=PETSc.ScatterMode.REVERSE)
+    fem.set_bc(b, bcs, x0=x, alpha=-1.0)
+    b.ghostUpdate(addv=insert, mode=PETSc.ScatterMode.FORWARD)
 
 
 def _integral_ids(form: dolfinx.fem.Form, kind: object) -> list[int]:

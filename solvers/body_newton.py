@@ -49,6 +49,7 @@ import numpy as np
 from meshes.errors import InputError
 from models.backend import (
     PETSc,
+    assemble_snes_residual,
     dolfinx,
     global_min_on_cells,
     global_scalar,
@@ -289,10 +290,15 @@ class EnergyNewton:
         return J
 
     def _wrap_callbacks(self) -> None:
-        """Replace dolfinx's SNES residual by :meth:`_residual` (dolfinx's assembly + term)."""
+        """Replace dolfinx's SNES residual by :meth:`_residual` (dolfinx's assembly + term).
+
+        The assembly is :func:`models.backend.assemble_snes_residual`: dolfinx's, without the
+        lifting of Dirichlet values the iterate already meets.
+        """
         snes, problem, bcs = self.problem.solver, self.problem, self._bcs
-        self._assemble_residual = lambda x, b: dolfinx.fem.petsc.assemble_residual(
-            snes, x, b, self.u, self._F, self._J, bcs)
+        work = problem.b.duplicate()
+        self._assemble_residual = lambda x, b: assemble_snes_residual(
+            x, b, self.u, self._F, self._J, bcs, work)
         self._assemble_jacobian = lambda x, J: dolfinx.fem.petsc.assemble_jacobian(
             snes, x, J, J, self.u, self._J, None, bcs)
         snes.setFunction(self._residual, self.problem.b)

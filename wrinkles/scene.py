@@ -23,17 +23,29 @@ import copy
 import dataclasses
 import importlib
 import math
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 from meshes.errors import InputError
+from meshes.validate import MeshWarning
 from models.body import BodyOptions
 from models.materials import Material
 from models.rigid import RigidBallOptions, RigidCouplingOptions, RigidOptions, scheme
 from solvers.body_newton import NewtonOptions
-from wrinkles.config import Source, build, call_kwargs, expert, flatten, load, to_dict, unflatten
+from wrinkles.config import (
+    Source,
+    build,
+    call_kwargs,
+    expert,
+    flatten,
+    load,
+    read_toml,
+    to_dict,
+    unflatten,
+)
 from wrinkles.output import OutputOptions
 from wrinkles.shell_setup import ShellOptions
 
@@ -306,7 +318,27 @@ def load_scene(path: str | Path, overrides: list[str] | None = None) -> Scene:
     path = Path(path)
     scene = load(Scene, path, overrides, overlays=(refuse_retired, apply_up))
     keys = frozenset(o.partition("=")[0].strip() for o in overrides or [])
+    warn_added_tables(path, keys)
     return resolve(scene, path.resolve().parent, Source(path.name, keys))
+
+
+OPTIONAL_TABLES: tuple[str, ...] = ("shell", "rigid")
+"""Tables whose presence adds a part to the scene (the embedded shell, rigid balls)."""
+
+
+def warn_added_tables(path: Path, keys: frozenset[str]) -> None:
+    """Warn when a ``--set`` key creates an :data:`OPTIONAL_TABLES` table the file lacks.
+
+    ``--set shell.imperfection_seed=2`` on a body-only scene adds a whole shell with the
+    defaults of every other key: what the user asked for, or a key meant for another scene.
+    """
+    written = read_toml(path)
+    for table in OPTIONAL_TABLES:
+        added = sorted(k for k in keys if k == table or k.startswith(f"{table}."))
+        if added and table not in written:
+            warnings.warn(f"--set {added[0]}: {path.name} has no [{table}] table; the override "
+                          f"adds one, with the defaults for its other keys", MeshWarning,
+                          stacklevel=2)
 
 
 def scene_from_dict(data: dict[str, Any], base: Path, name: str = "<dict>") -> Scene:

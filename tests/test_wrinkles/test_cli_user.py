@@ -177,3 +177,14 @@ def test_a_static_scene_without_pins_is_warned_about(tmp_path):
                     "--set", 'body.dynamics="static"', "--set", "body.dt=0.5")
     assert "warning: body.pins: a static scene without pins has no unique solution" in proc.stderr
     assert proc.returncode == 2  # and the solve fails, as the warning says
+
+
+def test_a_set_key_that_adds_a_shell_to_a_body_only_scene_is_warned_about(tmp_path):
+    """``drop_block.toml`` has no [shell]: a ``--set shell.*`` key adds one, and says so."""
+    proc = wrinkles("check", str(DROP_BLOCK), "--set", "shell.imperfection_seed=2")
+    assert proc.returncode == 0, proc.stderr
+    assert ("warning: --set shell.imperfection_seed: drop_block.toml has no [shell] table; the "
+            "override adds one" in proc.stderr)
+    assert json.loads(proc.stdout)["scene"]["shell"] is not None
+    quiet = wrinkles("check", str(DEFAULT_SCENE), "--set", "shell.imperfection_seed=2")
+    assert quiet.returncode == 0 and "no [shell] table" not in quiet.stderr

@@ -23,9 +23,10 @@ per scene and code:
   ``-`` for code that does not count them) and the frames whose shell solve did not
   converge;
 * with ``--seeds N``: each scene run N times, with ``shell.imperfection_seed`` 0 (the key not
-  passed, so earlier code runs it too) to N - 1; a wrinkle pattern is one of many nearly equal
-  minima and the seed picks it, so a change is judged against the spread over the seeds (a
-  table of mean, min and max per scene and code follows the rows);
+  passed, so earlier code runs it too) to N - 1 (a scene without a ``[shell]`` table runs N
+  times as it is); a wrinkle pattern is one of many nearly equal minima and the seed picks
+  it, so a change is judged against the spread over the seeds (a table of mean, min and max
+  per scene and code follows the rows);
 * with ``--ranks 1 2``: each run under ``mpiexec -n N`` (the venv's), every rank count of a
   scene side by side; the frames' wall time is then the measure (the frames' CPU is rank 0's),
   with the speed-up against the first rank count of the same code and the peak resident
@@ -60,6 +61,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -72,6 +74,12 @@ def scene_path(name: str) -> Path:
     """``scenes/<name>.toml`` of this repository, or ``name`` itself when it is a file."""
     path = Path(name)
     return path if path.suffix == ".toml" else REPO / "scenes" / f"{name}.toml"
+
+
+def has_shell(scene: Path) -> bool:
+    """Whether the scene file has a ``[shell]`` table (the seeds vary its imperfection)."""
+    with scene.open("rb") as f:
+        return "shell" in tomllib.load(f)
 
 
 def worktree(rev: str, where: Path) -> Path:
@@ -266,7 +274,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             print(f"{'(warm-up)':>18} {label:>8}  one frame of {scene} on {ranks} rank(s): "
                   f"exit {warm['exit']}, {warm['process_wall']:.1f} s", flush=True)
         for scene, seed in itertools.product(args.scenes, range(args.seeds)):
-            seeded = args.overrides + ([f"shell.imperfection_seed={seed}"] if seed else [])
+            seeded = args.overrides + ([f"shell.imperfection_seed={seed}"]
+                                       if seed and has_shell(scene_path(scene)) else [])
             first: dict[str, float] = {}  # frames' wall time at the first rank count, per code
             for ranks in args.ranks:
                 for label, code in codes:

@@ -31,6 +31,7 @@ from typing import Any, Literal
 
 from meshes.errors import InputError
 from meshes.validate import MeshWarning
+from models.backend import MPI
 from models.body import BodyOptions
 from models.materials import Material
 from models.rigid import RigidBallOptions, RigidCouplingOptions, RigidOptions, scheme
@@ -331,7 +332,10 @@ def warn_added_tables(path: Path, keys: frozenset[str]) -> None:
 
     ``--set shell.imperfection_seed=2`` on a body-only scene adds a whole shell with the
     defaults of every other key: what the user asked for, or a key meant for another scene.
+    Rank 0 warns (every rank loads the scene).
     """
+    if MPI.COMM_WORLD.rank != 0:
+        return
     written = read_toml(path)
     for table in OPTIONAL_TABLES:
         added = sorted(k for k in keys if k == table or k.startswith(f"{table}."))

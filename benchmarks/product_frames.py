@@ -61,9 +61,10 @@ import subprocess
 import sys
 import tempfile
 import time
-import tomllib
 from pathlib import Path
 from typing import Any
+
+from wrinkles.config import read_toml
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "product_frames.json"
@@ -78,8 +79,7 @@ def scene_path(name: str) -> Path:
 
 def has_shell(scene: Path) -> bool:
     """Whether the scene file has a ``[shell]`` table (the seeds vary its imperfection)."""
-    with scene.open("rb") as f:
-        return "shell" in tomllib.load(f)
+    return "shell" in read_toml(scene)
 
 
 def worktree(rev: str, where: Path) -> Path:

@@ -10,9 +10,18 @@ from __future__ import annotations
 
 import re
 
+import numpy as np
 import pytest
 
-from models.backend import PETSc, begin_petsc_log
+from models.backend import (
+    MPI,
+    PETSc,
+    assemble_snes_residual,
+    begin_petsc_log,
+    dolfinx,
+    ufl,
+    vector_space,
+)
 
 
 def test_log_is_active_after_import_and_begin_is_idempotent():
@@ -40,10 +49,6 @@ def test_rank0_only_sparse_solve_does_not_deadlock(mpiexec):
 
 def _hyperelastic_residual():
     """A neo-Hookean box pinned at x = 0 to a moved face: ``(u, F, J, bcs, b)``."""
-    import numpy as np
-
-    from models.backend import MPI, dolfinx, ufl, vector_space
-
     mesh = dolfinx.mesh.create_box(MPI.COMM_WORLD, [[0, 0, 0], [1, 1, 1]], [3, 3, 3],
                                    dolfinx.mesh.CellType.tetrahedron)
     V = vector_space(mesh, 1)
@@ -66,10 +71,6 @@ def _hyperelastic_residual():
 def test_snes_residual_equals_dolfinx_with_or_without_the_lifting(meets, monkeypatch):
     """Bit for bit dolfinx's ``assemble_residual``; dolfinx's own path only where the
     iterate is off its Dirichlet values (a start that meets them skips the lifting)."""
-    import numpy as np
-
-    from models.backend import assemble_snes_residual, dolfinx
-
     u, residual, jacobian, bcs, b = _hyperelastic_residual()
     if meets:
         bcs[0].set(u.x.array)

@@ -54,11 +54,10 @@ def worker(scene_file: str, overrides: list[str], out: Path) -> dict[str, Any]:
             more than two processes.
 
     """
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    import dolfinx_solver  # noqa: F401  (PETSc and MPI first, as the CLI does)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")  # before the backend loads BLAS and MUMPS
     import numpy as np
-    from mpi4py import MPI
 
+    from models.backend import MPI
     from wrinkles.runner import prepare, run_frame
     from wrinkles.scene import load_scene
 

@@ -34,6 +34,7 @@ from typing import Any, NoReturn
 
 from meshes.errors import InputError, SolverError, WrinklesError
 from wrinkles import plot, render, view
+from wrinkles.output import one_line
 from wrinkles.provenance import version_text
 
 AGREE_SECONDS = 10.0
@@ -87,16 +88,11 @@ def add_scene_arguments(parser: ArgumentParser) -> ArgumentParser:
     return parser
 
 
-def one_line(message: str) -> str:
-    """Collapse a message to one line for stderr."""
-    return " ".join(message.split())
-
-
 def command_run(args: argparse.Namespace) -> int:
     """Load the scene, apply ``--frames`` and ``--set``, run it (collective)."""
-    from meshes.errors import SolverError
     from models.backend import MPI
-    from wrinkles.runner import prepare, run_frames
+    from wrinkles.overlap import choose_layout, run_overlapped
+    from wrinkles.runner import prepare, record_failure, run_frames
     from wrinkles.scene import load_scene, with_frames
 
     scene = load_scene(args.scene, args.overrides)
@@ -104,6 +100,10 @@ def command_run(args: argparse.Namespace) -> int:
         scene = with_frames(scene, args.frames)
     out = args.out if args.out is not None else Path("out") / args.scene.stem
     comm = MPI.COMM_WORLD
+    if choose_layout(scene, comm) == "overlap":
+        with frame_progress(scene.time.frames, comm.size) as log:
+            run_overlapped(scene, out, comm, args.resume, args.overwrite, log)
+        return 0
     run = prepare(scene, out, comm, restart=args.resume, overwrite=args.overwrite,
                   log=lambda line: print(line, flush=True))
     try:
@@ -149,32 +149,6 @@ def frame_progress(frames: int, ranks: int) -> Iterator[Callable[[str], None]]:
         yield log
 
 
-def record_failure(run: Any, exc: SolverError) -> str:
-    """Add the failure diagnostic to ``summary.json``; return the one-line stderr message.
-
-    Collective. The message is the solver's, followed by the short form of the diagnostic
-    (worst det F and its cell, dominant energy term, material and step parameters).
-    """
-    from wrinkles.output import failure_diagnostic
-    from wrinkles.runner import write_summary
-
-    diagnostic = failure_diagnostic(run.body, one_line(str(exc)))
-    run.facts["diagnostic"] = diagnostic
-    write_summary(run)
-    return f"{diagnostic['error']}; diagnostic: {short_diagnostic(diagnostic)}"
-
-
-def short_diagnostic(diagnostic: dict[str, Any]) -> str:
-    """One-line form of :func:`wrinkles.output.failure_diagnostic`'s record."""
-    worst, params = diagnostic["worst_det_f"], diagnostic["parameters"]
-    centroid = ", ".join(f"{c:.4g}" for c in worst["cell_centroid"])
-    energy = diagnostic["energies"][diagnostic["dominant_energy"]]
-    return (f"last good state t={diagnostic['time']:.6g}: smallest det F={worst['min_det_f']:.4g} "
-            f"in cell {worst['cell']} (quadrature point {worst['quadrature_point']}, "
-            f"centroid ({centroid}) m), dominant energy term {diagnostic['dominant_energy']}="
-            f"{energy:.4e} J, parameters " + ", ".join(f"{k}={v}" for k, v in params.items()))
-
-
 def command_check(args: argparse.Namespace) -> int:
     """Validate the scene and its mesh; print the scene and the values the run will use (JSON).
 
@@ -184,6 +158,7 @@ def command_check(args: argparse.Namespace) -> int:
     from models.backend import MPI
     from models.embedding.surface import boundary_surface
     from wrinkles.output import json_text
+    from wrinkles.overlap import layout_for, scene_sizes
     from wrinkles.runner import read_tet_mesh
     from wrinkles.scene import load_scene, scene_dict
     from wrinkles.shell_setup import shell_report
@@ -201,6 +176,7 @@ def command_check(args: argparse.Namespace) -> int:
         surface = boundary_surface(mesh.points, mesh.tets)
         resolved["shell"] = shell_report(scene.shell, scene.material, surface.vertices,
                                          surface.faces, static=scene.body.dynamics == "static")
+        resolved["shell"]["layout_on_2_ranks"] = layout_for(scene, 2, lambda: scene_sizes(scene))
     print(json_text({"scene": scene_dict(scene), "resolved": resolved}), end="", flush=True)
     return 0
 

@@ -554,3 +554,19 @@ def failure_diagnostic(body: Any, error: str) -> dict[str, Any]:
                            "dynamics": body.options.dynamics, "degree": body.options.degree,
                            "newton_max_it": body.newton.max_it,
                            "max_halvings": body.newton.max_halvings}}
+
+
+def one_line(message: str) -> str:
+    """Collapse a message to one line for stderr."""
+    return " ".join(message.split())
+
+
+def short_diagnostic(diagnostic: dict[str, Any]) -> str:
+    """One-line form of :func:`failure_diagnostic`'s record."""
+    worst, params = diagnostic["worst_det_f"], diagnostic["parameters"]
+    centroid = ", ".join(f"{c:.4g}" for c in worst["cell_centroid"])
+    energy = diagnostic["energies"][diagnostic["dominant_energy"]]
+    return (f"last good state t={diagnostic['time']:.6g}: smallest det F={worst['min_det_f']:.4g} "
+            f"in cell {worst['cell']} (quadrature point {worst['quadrature_point']}, "
+            f"centroid ({centroid}) m), dominant energy term {diagnostic['dominant_energy']}="
+            f"{energy:.4e} J, parameters " + ", ".join(f"{k}={v}" for k, v in params.items()))

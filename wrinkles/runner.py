@@ -75,7 +75,10 @@ from wrinkles.output import (
     WORK_DIR,
     XDMF_NAME,
     XdmfSeries,
+    failure_diagnostic,
     json_text,
+    one_line,
+    short_diagnostic,
     summary_document,
     write_json_atomic,
 )
@@ -110,7 +113,8 @@ class FrameRecord:
         min_det_f: minimum of det F over the body's quadrature points [-].
         wall_time: wall time of the frame, output included [s].
         cpu_time: CPU time of this process during the frame, all its threads [s].
-        stage_times: wall time per stage [s].
+        stage_times: wall time per stage [s] (in the overlapped layout the body stage's is
+            the shell rank's wait for the body rank, :mod:`wrinkles.overlap`).
         details: further numbers returned by the stages (energy split, halvings, ...).
 
     """
@@ -281,6 +285,33 @@ def prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = False,
 def _prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool, overwrite: bool,
              say: Callable[[str], None]) -> Run:
     """:func:`prepare` after the output directory was checked (collective)."""
+    run = prepare_body(scene, out, comm, say)
+    body = run.body
+    shell = (None if scene.shell is None
+             else build_shell(body, scene.shell, scene.material, log=say,
+                              source=scene.mesh.file or f"mesh.builder {scene.mesh.builder}"))
+    state: BodyState | None = None
+    if restart:
+        state = resume(run)
+        if run.rigid is not None:
+            run.rigid.restore(checkpoint_stage(state, "rigid"))
+    else:
+        if overwrite:
+            on_root(comm, lambda: clear_run(out))
+        start(run)
+    if shell is not None:
+        attach_shell(run, shell, state)
+    if not restart:
+        save_frame(run, 0)
+    return run
+
+
+def prepare_body(scene: Scene, out: Path, comm: MPI.Comm, say: Callable[[str], None]) -> Run:
+    """Build the mesh, the body and its balls, with the body stage; no output (collective).
+
+    The set-up :func:`prepare` shares with a rank that only steps the body
+    (:mod:`wrinkles.overlap`). The scene's warnings about pins are issued on rank 0.
+    """
     mesh = distributed_mesh(scene.mesh, comm)
     cells = mesh.topology.index_map(3).size_global
     say(f"mesh: {cells} tets on {comm.size} rank(s)")
@@ -304,27 +335,12 @@ def _prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool, overwrite: 
         check_balls_outside(body, scene)
         run.rigid = BallCoupling(body, scene.rigid.internals, len(scene.body.contacts))
         run.stages = [("body+rigid", rigid_stage(run.rigid, scene.time.steps_per_frame))]
-    run.facts = {"ranks": comm.size, "status": "running", "frames_planned": run.n_frames,
+    run.facts = {"ranks": comm.size, "layout": "split" if comm.size > 1 else "serial",
+                 "status": "running", "frames_planned": run.n_frames,
                  "started": datetime.now(UTC).isoformat(timespec="seconds"),
                  "command": " ".join(shlex.quote(a) for a in sys.argv),
                  "commit": source_commit() if comm.rank == 0 else None,
                  "mesh": mesh_facts(mesh, body), "pin_nodes": body.pin_nodes}
-    shell = (None if scene.shell is None
-             else build_shell(body, scene.shell, scene.material, log=say,
-                              source=scene.mesh.file or f"mesh.builder {scene.mesh.builder}"))
-    state: BodyState | None = None
-    if restart:
-        state = resume(run)
-        if run.rigid is not None:
-            run.rigid.restore(checkpoint_stage(state, "rigid"))
-    else:
-        if overwrite:
-            on_root(comm, lambda: clear_run(out))
-        start(run)
-    if shell is not None:
-        attach_shell(run, shell, state)
-    if not restart:
-        save_frame(run, 0)
     return run
 
 
@@ -686,6 +702,20 @@ def run_frames(run: Run, log: Callable[[str], None] = print) -> Run:
         shutil.rmtree(run.out / WORK_DIR, ignore_errors=True)
     render_if_asked(run, log)
     return run
+
+
+def record_failure(run: Run, exc: SolverError) -> str:
+    """Add the failure diagnostic to ``summary.json``; return the one-line stderr message.
+
+    Collective. The message is the solver's, followed by the short form of the diagnostic
+    (worst det F and its cell, dominant energy term, material and step parameters). An
+    ``exc`` with a ``diagnostic`` attribute (a failure on another rank) brings its own.
+    """
+    diagnostic = getattr(exc, "diagnostic", None) or failure_diagnostic(run.body,
+                                                                        one_line(str(exc)))
+    run.facts["diagnostic"] = diagnostic
+    write_summary(run)
+    return f"{diagnostic['error']}; diagnostic: {short_diagnostic(diagnostic)}"
 
 
 def render_if_asked(run: Run, log: Callable[[str], None]) -> None:

@@ -197,6 +197,12 @@ class SolverKeys:
         max_iterations: Newton iterations per frame.
         threads: threads of the element kernels and multigrid products; 0 = the cores of a
             serial run of a large shell, else 1 (:func:`solvers.solver_choice.choose_threads`).
+        layout: how a one-way scene uses the ranks of ``mpiexec -n 2``: "split" (body and
+            shell each split over both ranks, stage after stage), "overlap" (the body on one
+            rank, the shell on the other, the stages overlapped: :mod:`wrinkles.overlap`) or
+            "auto" (overlap where the body is a large share of the frame and too small to
+            divide, :func:`wrinkles.overlap.choose_layout`). Other rank counts and two-way
+            scenes split.
         options: expert mapping of dotted paths into :class:`ShellInternals` (``"newton.shift.
             growth" = 5``, ``"energy.hessian_mode" = "gauss_newton"``, ``"coupling.scheme" =
             "implicit"``), checked like any key; ``wrinkles check`` prints the resolved values.
@@ -207,6 +213,7 @@ class SolverKeys:
     rtol: float = 1e-8
     max_iterations: int = 200
     threads: int = 0
+    layout: Literal["auto", "split", "overlap"] = "auto"
     options: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:

@@ -60,6 +60,8 @@ START, FRAME, DONE, FACTS = 401, 402, 403, 404
 """Message tags of the overlapped layout."""
 LOOKAHEAD = 2
 """Frames the body rank may run ahead of the shell rank."""
+POLL_SECONDS = 2e-4
+"""Sleep between probes of a rank waiting for the other (:func:`patient_recv`)."""
 MAX_BODY_DOFS = 2500
 """Bodies up to this many dofs overlap under ``"auto"``: their stage does not divide over two
 ranks (the demo's 1 050 dofs); the full sofa's 4 386 and the bunny's 14 010 do and keep
@@ -207,12 +209,27 @@ def agreed(comm: MPI.Comm, make: Callable[[], Run]) -> Run:
         run = make()
     except WrinklesError as exc:
         failure = (type(exc), str(exc))
+    arrived = comm.Ibarrier()  # the body's set-up ends first: wait without spinning
+    while not arrived.Test():
+        time.sleep(POLL_SECONDS)
     failures = comm.allgather(failure)
     first = next((f for f in failures if f is not None), None)
     if first is not None:
         mine = failures[comm.rank] or first
         raise mine[0](mine[1])
     return run
+
+
+def patient_recv(comm: MPI.Comm, source: int, tag: int) -> Any:
+    """Receive a pickled message, probing every :data:`POLL_SECONDS` until it is there.
+
+    A blocking ``MPI_Recv`` spins its core while it waits; the rank that waits here (the body
+    rank ahead of the shell, or the reverse) would take cycles from the other rank's stage
+    wherever two ranks share a core's resources.
+    """
+    while not comm.Iprobe(source=source, tag=tag):
+        time.sleep(POLL_SECONDS)
+    return comm.recv(source=source, tag=tag)
 
 
 def error_of(code: int, message: str) -> WrinklesError:
@@ -244,7 +261,7 @@ class ShellSide:
         """Run rank 0's body stage: confirm the last frame, take this frame's body state."""
         if frame > self.first:
             self.done(frame - 1, "ok")
-        message = self.comm.recv(source=BODY_RANK, tag=FRAME)
+        message = patient_recv(self.comm, BODY_RANK, FRAME)
         run = self.run
         run.body.restore(message["state"])
         if run.rigid is not None:
@@ -273,7 +290,7 @@ class ShellSide:
             raise
         if self.first <= self.run.n_frames:
             self.done(self.run.n_frames, "ok")
-        facts = self.comm.recv(source=BODY_RANK, tag=FACTS)
+        facts = patient_recv(self.comm, BODY_RANK, FACTS)
         MPI.Request.Waitall(self.sent)
         run = self.run
         run.facts["peak_memory_mb"] = [*run.facts["peak_memory_mb"], facts["peak_memory_mb"]]
@@ -341,7 +358,7 @@ class BodySide:
     def wait(self, frame: int) -> None:
         """Wait until rank 0 has completed ``frame``; raise its error if it stopped."""
         while self.confirmed < frame:
-            _, status, code, message = self.comm.recv(source=SHELL_RANK, tag=DONE)
+            _, status, code, message = patient_recv(self.comm, SHELL_RANK, DONE)
             if status == "stop":
                 if not self.failed:  # rank 0 drains the frames in flight up to this
                     self.comm.send({"end": True}, dest=SHELL_RANK, tag=FRAME)

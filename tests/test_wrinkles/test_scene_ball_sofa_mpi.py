@@ -23,13 +23,17 @@ def serial(tmp_path_factory) -> Path:
 
 
 @pytest.mark.mpi
-@pytest.mark.parametrize("ranks", [2, 3])
-def test_ranks_agree_with_serial(serial, ranks, tmp_path, mpiexec):
+@pytest.mark.parametrize(("ranks", "layout"), [(2, "split"), (2, "overlap"), (3, "split")])
+def test_ranks_agree_with_serial(serial, ranks, layout, tmp_path, mpiexec):
+    """Body and ball split over 2 and 3 ranks, or stepped on one rank beside the shell
+    (``"overlap"``, the 2-rank default here, tests/test_wrinkles/test_overlap.py)."""
     parallel = tmp_path / "mpi"
-    proc = mpiexec(["-m", "wrinkles", *ARGS, "--out", str(parallel)], n=ranks, timeout=300)
+    proc = mpiexec(["-m", "wrinkles", *ARGS, "--out", str(parallel),
+                    "--set", f"shell.solver.layout='{layout}'"], n=ranks, timeout=300)
     assert proc.returncode == 0, proc.stderr
     a, b = (json.loads((d / "summary.json").read_text())["frames"] for d in (serial, parallel))
-    assert json.loads((parallel / "summary.json").read_text())["run"]["ranks"] == ranks
+    run = json.loads((parallel / "summary.json").read_text())["run"]
+    assert (run["ranks"], run["layout"]) == (ranks, layout)
     for fa, fb in zip(a, b, strict=True):
         ba, bb = fa["details"]["balls"][0], fb["details"]["balls"][0]
         for key in ("center", "velocity"):

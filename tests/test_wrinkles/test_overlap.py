@@ -135,6 +135,32 @@ def test_a_resumed_overlapped_run_equals_the_resumed_serial_run(serial, mpiexec,
 
 
 @pytest.mark.mpi
+def test_a_killed_overlapped_run_resumes_to_the_straight_run(mpiexec, tmp_path):
+    """SIGKILL of ``mpiexec -n 2`` (every rank) after two of six frames, then ``--resume``
+    on two ranks: the series intact, the body frames equal to the straight serial run's bit
+    for bit, the shell's energies to the solver's tolerance."""
+    from killrun import kill_after_frames
+
+    run = ["run", str(DEMO), "--frames", "6", *ARGS]
+    straight, out = tmp_path / "straight", tmp_path / "out"
+    proc = wrinkles(*run, "--out", str(straight), timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    done = kill_after_frames([*run, "--out", str(out)], out, after=2, delay=0.05, ranks=2)
+    assert 2 <= done < 6
+    resumed = mpiexec(["-m", "wrinkles", *run, "--out", str(out), "--resume"], timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    for name in ("body.xdmf", "shell.xdmf"):
+        assert [t for t, _ in read_series(out / name)[1]] == \
+            [t for t, _ in read_series(straight / name)[1]]
+    got, ref = frames_of(out), frames_of(straight)
+    assert [f["energy"] for f in got] == [f["energy"] for f in ref]
+    np.testing.assert_allclose([f["details"]["shell_energy"] for f in got],
+                               [f["details"]["shell_energy"] for f in ref], rtol=1e-9)
+    run_facts = json.loads((out / "summary.json").read_text())["run"]
+    assert run_facts["layout"] == "overlap" and len(run_facts["restarts"]) == 1
+
+
+@pytest.mark.mpi
 @pytest.mark.parametrize("failure", ["body", "shell"])
 def test_a_failure_on_either_rank_ends_both_as_the_serial_run_does(failure, mpiexec,
                                                                    tmp_path):

@@ -6,6 +6,8 @@ PY      := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed
 OUT     ?= out/demo
 SCENE   ?= scenes/ball_sofa_coarse.toml
+# the demo's ranks: 2 where the machine has 2 cores (its body and shell stages overlap), else 1
+RANKS   ?= $(shell [ "$$(nproc 2>/dev/null || echo 1)" -ge 2 ] && echo 2 || echo 1)
 PYTEST_ARGS ?=
 export OMP_NUM_THREADS ?= 1
 export OPENBLAS_NUM_THREADS ?= 1
@@ -25,7 +27,7 @@ $(STAMP): requirements.lock pyproject.toml tools/find_python.sh
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/wrinkles run $(SCENE) --out $(OUT) --overwrite
+	$(VENV)/bin/mpiexec -n $(RANKS) $(VENV)/bin/wrinkles run $(SCENE) --out $(OUT) --overwrite
 	$(VENV)/bin/wrinkles view $(OUT)
 	$(VENV)/bin/wrinkles plot $(OUT)
 

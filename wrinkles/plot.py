@@ -2,7 +2,8 @@
 
 Four panels over the frame number: the energies (body total, shell terms), the Newton
 iterations (body, shell, a red cross where the shell stopped above its tolerance; coupling
-iterations of two-way frames), the wall time per stage, and
+iterations of two-way frames), the wall time per stage (and, for a run whose stages overlap on
+two ranks, the body rank's own time per frame as a dashed line), and
 the smallest ``det F`` with the wrinkle amplitude (normal offset over the mean edge length).
 Energies that change sign are drawn on a symmetric-log axis. Written as ``RUN/plots.png``
 (matplotlib, Agg backend: no display needed).
@@ -117,6 +118,9 @@ def summary_figure(summary: dict[str, Any], name: str, width: float = 11.0,
         times = np.array([r.get("stage_times", {}).get(stage, 0.0) for r in frames])
         ax.bar(k, times, bottom=bottom, label=stage)
         bottom += times
+    beside = series(frames, "body_rank_time")  # the overlapped layout's body, on rank 1
+    if np.isfinite(beside).any():
+        ax.plot(k, beside, "D--", color="black", label="body on rank 1 (overlapped)")
     ax.set_ylabel("wall time per stage [s]")
     ax.set_xlabel("frame")
     ax.legend(fontsize=7)

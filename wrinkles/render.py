@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import shutil
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -221,8 +222,7 @@ def render_run(out: Path, options: RenderOptions | None = None) -> list[Path]:
         camera = render_frame(polydata(rest, faces, frame), pngs[-1], clim, opts, camera,
                               spheres(frame.time))
     last = Path(out) / "shell.png"
-    render_frame(polydata(rest, faces, frames[-1]), last, clim, opts, camera,
-                 spheres(frames[-1].time))
+    shutil.copyfile(pngs[-1], last)  # the last frame's picture, not rendered twice
     gif = Path(out) / "shell.gif"
     write_gif(pngs, gif, opts)
     return [*pngs, last, gif]

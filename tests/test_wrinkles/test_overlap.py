@@ -104,6 +104,17 @@ def test_two_ranks_overlap_the_demo_and_give_the_serial_frames(serial, mpiexec, 
     assert len(run["peak_memory_mb"]) == 2 and run["body_rank"]["wall_time"] > 0.0
     assert run["contact_facets"] == reference["contact_facets"]
     assert_same_run(serial, out)
+    import matplotlib.pyplot as plt
+
+    from wrinkles.plot import read_summary, summary_figure
+
+    label = "body on rank 1 (overlapped)"
+    summary = read_summary(out)
+    (line,) = [x for x in summary_figure(summary, "o").axes[2].lines if x.get_label() == label]
+    assert list(line.get_ydata()) == [f["details"]["body_rank_time"] for f in summary["frames"]]
+    assert label not in [x.get_label() for x in
+                         summary_figure(read_summary(serial), "s").axes[2].lines]
+    plt.close("all")
 
 
 @pytest.mark.mpi

@@ -11,7 +11,9 @@ far and the checkpoint stay on disk, ``summary.json`` gets ``run.diagnostic`` - 
 cell, energy terms, parameters - which is also printed on stderr as one ``diagnostic:`` JSON
 line) or an unexpected exception (a bug: its traceback is printed).
 
-Under MPI every rank runs the same code. Errors raised on all ranks (scene validation, mesh
+Under MPI every rank runs the same code, split over the ranks; a one-way scene on two ranks may
+instead overlap its body and shell stages, one rank each (:mod:`wrinkles.overlap`, chosen by
+``shell.solver.layout``). Errors raised on all ranks (scene validation, mesh
 errors broadcast from rank 0, solver failures, which are collective) end the run with the
 error's exit code after rank 0 prints the message. An error raised on some ranks only cannot
 be agreed on while the others wait in a collective call: after ``AGREE_SECONDS`` without

@@ -5,7 +5,8 @@ In a one-way scene the shell follows the body (Algorithm 1 of the draft, Rémill
 then overlap the stages instead of splitting each over both ranks: rank 1 steps the body (and
 its rigid balls) frame after frame and sends each frame's end state to rank 0, which sets it
 into its own copy of the body, runs the shell stage and writes all output, as a serial run
-(:func:`wrinkles.runner.prepare` on ``COMM_SELF``). A frame then costs about
+(:func:`wrinkles.runner.prepare` on ``COMM_SELF``); at the end both ranks render the shell's
+frames (:func:`wrinkles.runner.render_if_asked`). A frame then costs about
 ``max(body, shell)`` instead of ``body_2 + shell_2``, the stages' times on two split ranks;
 the frames equal the serial run's bit for bit. ``shell.solver.layout`` chooses
 (:func:`choose_layout`); ``"auto"`` overlaps where the body is small (its stage does not
@@ -49,6 +50,7 @@ from wrinkles.runner import (
     prepare_body,
     read_tet_mesh,
     record_failure,
+    render_if_asked,
     run_frames,
     write_summary,
 )
@@ -278,7 +280,7 @@ class ShellSide:
     def frames(self, log: Callable[[str], None]) -> None:
         """Run the frames; on a failure stop the body rank, record it and raise."""
         try:
-            run_frames(self.run, log)
+            run_frames(self.run, log, render=False)
         except Exception as exc:
             code = exc.exit_code if isinstance(exc, WrinklesError) else 2
             self.done(len(self.run.records) + 1, "stop", code, one_line(str(exc)))
@@ -298,6 +300,7 @@ class ShellSide:
             run.facts["contact_facets"] = facts["contact_facets"]
         run.facts["body_rank"] = {"wall_time": facts["wall_time"], "cpu_time": facts["cpu"]}
         write_summary(run)
+        render_if_asked(run, log, self.comm)
 
     def drain(self) -> None:
         """Receive the body rank's frames still in flight, up to its ``end`` or failure."""
@@ -348,6 +351,7 @@ class BodySide:
         self.comm.send({"peak_memory_mb": peak_memory_mb(), "contact_facets":
                         contact_facts(run.body), "wall_time": time.perf_counter() - wall,
                         "cpu": time.process_time() - cpu}, dest=SHELL_RANK, tag=FACTS)
+        render_if_asked(run, lambda _: None, self.comm)  # its share of the frames
 
     def state(self) -> dict[str, Any]:
         """Return the body's state (and the balls') at the end of the last step."""

@@ -131,13 +131,7 @@ def render_frame(mesh: Any, path: Path, clim: tuple[float, float], options: Rend
     Faces whose three vertices carry ``self_intersecting`` = 1 are drawn over it in
     :data:`CROSSING_COLOUR` with their edges.
     """
-    import pyvista as pv
-    from vtkmodules.vtkCommonCore import vtkLogger
-
-    # Without a display VTK falls back to off-screen rendering but first logs a warning ("bad X
-    # server connection") that reads like an error; keep its stderr log to real errors.
-    vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_ERROR)
-    plotter: Any = pv.Plotter(off_screen=True, window_size=[options.width, options.height])
+    plotter = offscreen_plotter(options)
     floor = 10.0 ** clim[0] if options.log_scale else 0.0
     scalars = colour_values(mesh.point_data["bending_energy_density"], options, floor)
     title = "log10 bending energy density" if options.log_scale else "bending energy density"
@@ -150,15 +144,47 @@ def render_frame(mesh: Any, path: Path, clim: tuple[float, float], options: Rend
     if balls is not None:
         plotter.add_mesh(balls, color="firebrick", smooth_shading=True, specular=0.6)
     if camera is None:
-        direction, view_up = CAMERAS[options_up(options)]
-        plotter.view_vector(options.view or direction, viewup=view_up)
-        plotter.camera.zoom(1.2)
+        aim(plotter, options)
     else:
         plotter.camera = camera
     plotter.screenshot(str(path))
     used = plotter.camera.copy()
     plotter.close()
     return used
+
+
+def offscreen_plotter(options: RenderOptions) -> Any:
+    """Return an off-screen pyvista plotter of the options' size."""
+    import pyvista as pv
+    from vtkmodules.vtkCommonCore import vtkLogger
+
+    # Without a display VTK falls back to off-screen rendering but first logs a warning ("bad X
+    # server connection") that reads like an error; keep its stderr log to real errors.
+    vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_ERROR)
+    return pv.Plotter(off_screen=True, window_size=[options.width, options.height])
+
+
+def aim(plotter: Any, options: RenderOptions) -> None:
+    """Point the plotter's camera along the view direction at everything it holds, zoomed."""
+    direction, view_up = CAMERAS[options_up(options)]
+    plotter.view_vector(options.view or direction, viewup=view_up)
+    plotter.camera.zoom(1.2)
+
+
+def view_camera(mesh: Any, options: RenderOptions, balls: Any | None = None) -> Any:
+    """Return the camera :func:`render_frame` aims at ``mesh`` and ``balls`` (no picture).
+
+    Every frame of a run is rendered with the camera of its first frame, which each rank of a
+    parallel render computes alike.
+    """
+    plotter = offscreen_plotter(options)
+    for item in (mesh, balls):
+        if item is not None:
+            plotter.add_mesh(item)
+    aim(plotter, options)
+    camera = plotter.camera.copy()
+    plotter.close()
+    return camera
 
 
 def ball_spheres(path: Path) -> Callable[[float], Any | None]:
@@ -193,11 +219,14 @@ def write_gif(pngs: Sequence[Path], path: Path, options: RenderOptions) -> None:
                    loop=0)
 
 
-def render_run(out: Path, options: RenderOptions | None = None) -> list[Path]:
+def render_run(out: Path, options: RenderOptions | None = None,
+               comm: Any | None = None) -> list[Path]:
     """Render every stored step of ``out/shell.xdmf``; return the files written.
 
     Writes ``out/frames/shell_NNNN.png``, ``out/shell.png`` (the last step) and
-    ``out/shell.gif``.
+    ``out/shell.gif``. With an MPI ``comm`` (collective) rank ``r`` of ``p`` renders the steps
+    ``r, r + p, ...`` with the same colour range and camera, and rank 0 writes ``shell.png``
+    and the GIF once all are done and returns the files (the others an empty list).
 
     Raises:
         InputError: no shell series in ``out``.
@@ -213,17 +242,22 @@ def render_run(out: Path, options: RenderOptions | None = None) -> list[Path]:
     rest, faces, _, frames = read_shell_series(series)
     if not frames:
         raise InputError(f"{series}: the series has no step")
+    rank, size = (0, 1) if comm is None else (comm.rank, comm.size)
     folder = Path(out) / opts.frames_dir
     folder.mkdir(parents=True, exist_ok=True)
-    clim, camera, pngs = colour_range(frames, opts), None, []
     spheres = ball_spheres(Path(out) / BALLS_XDMF_NAME)
-    for k, frame in enumerate(frames):
-        pngs.append(folder / f"shell_{k:04d}.png")
-        camera = render_frame(polydata(rest, faces, frame), pngs[-1], clim, opts, camera,
-                              spheres(frame.time))
-    last = Path(out) / "shell.png"
+    clim = colour_range(frames, opts)
+    camera = view_camera(polydata(rest, faces, frames[0]), opts, spheres(frames[0].time))
+    pngs = [folder / f"shell_{k:04d}.png" for k in range(len(frames))]
+    for k in range(rank, len(frames), size):
+        render_frame(polydata(rest, faces, frames[k]), pngs[k], clim, opts, camera,
+                     spheres(frames[k].time))
+    if comm is not None:
+        comm.Barrier()
+    if rank:
+        return []
+    last, gif = Path(out) / "shell.png", Path(out) / "shell.gif"
     shutil.copyfile(pngs[-1], last)  # the last frame's picture, not rendered twice
-    gif = Path(out) / "shell.gif"
     write_gif(pngs, gif, opts)
     return [*pngs, last, gif]
 

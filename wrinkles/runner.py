@@ -671,8 +671,11 @@ def write_summary(run: Run) -> None:
         write_json_atomic(run.out / SUMMARY_NAME, document)
 
 
-def run_frames(run: Run, log: Callable[[str], None] = print) -> Run:
+def run_frames(run: Run, log: Callable[[str], None] = print, render: bool = True) -> Run:
     """Run every frame of a prepared run; rank 0 passes one progress line per frame to ``log``.
+
+    Then, with ``render`` and ``output.render``, its ranks render the shell
+    (:func:`render_if_asked`).
 
     Raises:
         SolverError: a step failed after all halvings; ``summary.json`` records the failure
@@ -700,7 +703,8 @@ def run_frames(run: Run, log: Callable[[str], None] = print) -> Run:
     write_summary(run)
     if run.comm.rank == 0:
         shutil.rmtree(run.out / WORK_DIR, ignore_errors=True)
-    render_if_asked(run, log)
+    if render:
+        render_if_asked(run, log)
     return run
 
 
@@ -718,14 +722,20 @@ def record_failure(run: Run, exc: SolverError) -> str:
     return f"{diagnostic['error']}; diagnostic: {short_diagnostic(diagnostic)}"
 
 
-def render_if_asked(run: Run, log: Callable[[str], None]) -> None:
-    """Render the shell series (PNG frames, ``shell.png``, ``shell.gif``) on rank 0."""
-    if run.scene.shell is None or not run.scene.output.render or run.comm.rank != 0:
+def render_if_asked(run: Run, log: Callable[[str], None], comm: MPI.Comm | None = None) -> None:
+    """Render the shell series (PNG frames, ``shell.png``, ``shell.gif``) if the scene asks.
+
+    Collective over ``comm`` (default the run's): its ranks share the frames
+    (:func:`wrinkles.render.render_run`); rank 0 logs.
+    """
+    if run.scene.shell is None or not run.scene.output.render:
         return
     from wrinkles.render import RenderOptions, render_run
 
-    written = render_run(run.out, RenderOptions())
-    log(f"rendered {len(written)} files into {run.out}")
+    comm = run.comm if comm is None else comm
+    written = render_run(run.out, RenderOptions(), comm)
+    if comm.rank == 0:
+        log(f"rendered {len(written)} files into {run.out} (frames over {comm.size} rank(s))")
 
 
 def run_scene(scene: Scene, out: Path, comm: MPI.Comm, log: Callable[[str], None] = print,

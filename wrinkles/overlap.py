@@ -184,7 +184,7 @@ def run_overlapped(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = Fals
         log("layout: the body on rank 1, the shell and the output on rank 0, their stages "
             "overlapped (shell.solver.layout)")
         run = agreed(comm, lambda: prepare(scene, out, MPI.COMM_SELF, restart, overwrite, log))
-        ShellSide(comm, run).frames(log)
+        ShellSide(comm, run, restart).frames(log)
         return run
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # rank 0 issues the scene's warnings
@@ -242,13 +242,13 @@ def error_of(code: int, message: str) -> WrinklesError:
 class ShellSide:
     """Rank 0: receives the body's frames into its run and runs the shell stage and output."""
 
-    def __init__(self, comm: MPI.Comm, run: Run) -> None:
+    def __init__(self, comm: MPI.Comm, run: Run, restart: bool) -> None:
         """Send the start state and put the receiving stage in place of the body stage."""
         self.comm, self.run = comm, run
         self.first = len(run.records) + 1
         self.sent: list[MPI.Request] = []
         state = None
-        if run.records:  # resumed: the body rank starts from the checkpoint's state
+        if restart:  # the body rank starts from the checkpoint's state, as a serial resume
             b = run.body
             state = {"t": b.t, "u": b.u.x.array, "v": b.v.x.array, "a": b.a.x.array,
                      "rate": b.rate.x.array,

@@ -274,10 +274,18 @@ def add_parser(commands: Any) -> Any:
 
 
 def command_render(args: argparse.Namespace) -> int:
-    """Run the ``render`` sub-command; return the exit code."""
-    written = render_run(args.out, RenderOptions(width=args.width, height=args.height))
-    print(f"rendered {len(written)} files into {args.out} (shell.png, shell.gif, "
-          f"{len(written) - 2} frames)", flush=True)
+    """Run the ``render`` sub-command; return the exit code.
+
+    Under ``mpiexec -n N`` the ranks share the frames (:func:`render_run`); rank 0 reports.
+    """
+    from models.backend import MPI
+
+    comm = MPI.COMM_WORLD
+    written = render_run(args.out, RenderOptions(width=args.width, height=args.height),
+                         comm if comm.size > 1 else None)
+    if comm.rank == 0:
+        print(f"rendered {len(written)} files into {args.out} (shell.png, shell.gif, "
+              f"{len(written) - 2} frames)", flush=True)
     return 0
 
 

@@ -282,7 +282,7 @@ def test_check_prints_the_layout_two_ranks_would_take():
 def test_two_ranks_share_the_render_and_draw_the_serial_pictures(layout, mpiexec, tmp_path):
     """With ``output.render`` both ranks of either layout render their share of the frames
     (same colour range, same camera): every PNG equals, pixel for pixel, the serial render of
-    the same run's series."""
+    the same run's series; so do those of ``mpiexec -n 2 wrinkles render``."""
     from PIL import Image
 
     from wrinkles.render import render_run
@@ -293,11 +293,12 @@ def test_two_ranks_share_the_render_and_draw_the_serial_pictures(layout, mpiexec
                     "--set", f"shell.solver.layout='{layout}'"], timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "rendered 6 files" in proc.stdout and "(frames over 2 rank(s))" in proc.stdout
-    reference = tmp_path / "serial"
-    shutil.copytree(out, reference)
-    for name in ("frames", "shell.png", "shell.gif"):
-        path = reference / name
-        shutil.rmtree(path) if path.is_dir() else path.unlink()
+    reference, again = tmp_path / "serial", tmp_path / "again"
+    for copy in (reference, again):
+        shutil.copytree(out, copy)
+        shutil.rmtree(copy / "frames")
+        for name in ("shell.png", "shell.gif"):
+            (copy / name).unlink()
     written = render_run(reference)
     assert len(written) == 6
     for path in written[:-1]:  # the four frames and shell.png; the GIF is built from them
@@ -305,3 +306,9 @@ def test_two_ranks_share_the_render_and_draw_the_serial_pictures(layout, mpiexec
         assert np.array_equal(mine, np.asarray(Image.open(path).convert("RGB"))), path.name
     with Image.open(out / "shell.gif") as gif:
         assert gif.n_frames == 4
+    proc = mpiexec(["-m", "wrinkles", "render", str(again)], timeout=300)  # shared too
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.count("rendered 6 files") == 1
+    for path in written[:-1]:
+        mine = np.asarray(Image.open(again / path.relative_to(reference)).convert("RGB"))
+        assert np.array_equal(mine, np.asarray(Image.open(path).convert("RGB"))), path.name

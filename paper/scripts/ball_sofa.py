@@ -11,13 +11,18 @@ frame ``details.balls[0]`` (centre, velocity, contact force, penetration as a fr
 radius), ``details.rigid_iterations`` (body solves per coupled step) and ``details.momentum``
 (impulse on the ball, on the sofa, of the contact and of the ground). Writes
 ``data/ball_sofa.json`` and ``figures/ball_sofa.png`` (height, vertical velocity and contact force
-against time).
+against time). The scene then runs again on two ranks (``mpiexec -n 2``, no render): the
+layout it takes (``run.layout``), its frames' wall time and whether its frames are the serial
+ones bit for bit (``two_ranks``).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -41,6 +46,33 @@ def run(out: Path, quick: bool) -> float:
     if proc.returncode != 0:
         raise SystemExit(f"scene {SCENE} failed (exit {proc.returncode}):\n{proc.stderr}")
     return time.perf_counter() - started
+
+
+COMPARED: tuple[str, ...] = ("energy", "newton_iterations", "shell_energy", "shell_iterations")
+"""Frame record entries the two-rank run must reproduce exactly."""
+
+
+def two_ranks(out: Path, quick: bool, serial: Path) -> dict[str, Any]:
+    """Run the scene on two ranks; its layout, frames' wall time and equality with ``serial``."""
+    if out.exists():
+        shutil.rmtree(out)
+    repo = Path(__file__).resolve().parents[2]
+    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    cmd = [str(Path(sys.executable).with_name("mpiexec")), "-n", "2", sys.executable, "-m",
+           "wrinkles", "run", str(repo / "scenes" / f"{SCENE}.toml"), "--out", str(out),
+           *FRAMES, *(QUICK if quick else ()), "--set", "output.render=false"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=7200, cwd=repo, env=env)
+    if proc.returncode != 0:
+        raise SystemExit(f"scene {SCENE} on two ranks failed (exit {proc.returncode}):\n"
+                         f"{proc.stderr}")
+    runs = [json.loads((d / "summary.json").read_text()) for d in (serial, out)]
+
+    def entries(summary: dict[str, Any]) -> list[list[Any]]:
+        return [[f.get(k, f["details"].get(k)) for k in COMPARED] for f in summary["frames"]]
+
+    return {"layout": runs[1]["run"]["layout"],
+            "frame_wall_time_s": sum(f["wall_time"] for f in runs[1]["frames"]),
+            "same_frames": entries(runs[0]) == entries(runs[1])}
 
 
 def series(frames: list[dict[str, Any]]) -> dict[str, np.ndarray]:
@@ -166,6 +198,7 @@ def main() -> None:
     out = args.build / "runs" / "ball_sofa"
     wall = run(out, args.quick)
     numbers, s = summary_numbers(out)
+    numbers["two_ranks"] = two_ranks(args.build / "runs" / "ball_sofa_2ranks", args.quick, out)
     figures = [plot(figure_path(args.build, "ball_sofa"), s, numbers["impact_time"])]
     if not args.quick:
         numbers["render"] = copy_render(out, args.build, numbers["deepest_time"])

@@ -97,6 +97,7 @@ def test_tables_written_from_json(build):
     assert abs(scenes["twisted_cylinder"]["end_angle_error"]) < 1e-10
 
 
+@pytest.mark.mpi
 def test_ball_sofa_numbers_match_its_run(build):
     """data/ball_sofa.json against the run's summary.json and
     tests/test_wrinkles/test_scene_ball_sofa.py's bounds.
@@ -114,6 +115,10 @@ def test_ball_sofa_numbers_match_its_run(build):
     assert 2 <= ball["max_rigid_iterations"] <= 5  # measured 4
     assert ball["contact_force_peak"] > ball["weight"]  # measured 303 N against 49 N
     assert "render" not in ball  # quick mode renders nothing
+    two = ball["two_ranks"]  # the same scene under mpiexec -n 2: overlapped, the same frames
+    assert two["layout"] == "overlap" and two["same_frames"] is True
+    assert two["frame_wall_time_s"] > 0.0
+    assert "takes the overlap layout" in (build / "paper.md").read_text()
     assert "not made in quick mode" in (build / "paper.md").read_text()
 
 

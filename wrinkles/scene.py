@@ -192,6 +192,10 @@ class Scene:
                 scheme(self.body.dynamics)
             except InputError as exc:
                 raise InputError(f"rigid.balls: {exc}") from None
+        if self.shell is not None and self.output.render and not self.output.xdmf:
+            raise InputError("output.render = true draws the shell series, which output.xdmf "
+                             "= false does not write: set output.render = false or "
+                             "output.xdmf = true")
 
 
 # --------------------------------------------------------------------------------------------

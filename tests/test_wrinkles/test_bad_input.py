@@ -114,6 +114,17 @@ def test_bad_scene_value_refused_by_check(tmp_path, capsys, key, value, names):
     assert_refused(code, err, "scene.toml", *names)
 
 
+@pytest.mark.parametrize(("override", "names"), [
+    ("output.xdmf=false", ("output.render = true", "output.xdmf = false")),  # nothing to draw
+    ("shell.solver.layout='both'", ("shell.solver.layout",)),
+])
+def test_bad_shell_output_or_layout_refused_by_check(capsys, override, names):
+    """On the demo scene (a shell, ``output.render = true``)."""
+    code, err = run_cli(capsys, "check", str(REPO / "scenes" / "ball_sofa_coarse.toml"),
+                        "--set", override)
+    assert_refused(code, err, "ball_sofa_coarse.toml", *names)
+
+
 def test_missing_scene_table_value_uses_no_default_silently(tmp_path, capsys):
     """A scene without ``[mesh]`` cannot run: refused naming the missing table."""
     path = write_scene(tmp_path, set_key(base_scene(), "mesh", ...))

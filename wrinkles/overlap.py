@@ -17,7 +17,8 @@ and the body's state (:meth:`solvers.body.Body.snapshot`, the balls' arrays), or
 failure with its diagnostic, or ``end`` after a stop. Rank 0 -> 1 (``DONE``): after each
 frame ``ok``, or ``stop`` with the error that ended the run. Rank 1 runs at most
 :data:`LOOKAHEAD` frames ahead of rank 0. At the end rank 1 sends its peak memory and contact
-facets (``FACTS``). A resumed run sends rank 1 the start state (``START``).
+facets (``FACTS``). Before the frames rank 0 sends the first frame and, for a resumed run,
+the checkpoint's state (``START``).
 
 Failures end both ranks with the same exit code: a body step failure reaches rank 0 after the
 frames before it (which it completes and saves, as a serial run would); a failure on rank 0

@@ -118,6 +118,25 @@ def test_two_ranks_overlap_the_demo_and_give_the_serial_frames(serial, mpiexec, 
 
 
 @pytest.mark.mpi
+@pytest.mark.parametrize(("scene", "extra"), [
+    ("default.toml", []),                                   # static, pins moved by the load
+    ("ball_sofa_coarse.toml", ["--set", "body.degree=2"]),  # a P2 body (auto would split it)
+])
+def test_an_overlap_asked_for_gives_the_serial_frames(scene, extra, mpiexec, tmp_path):
+    """``shell.solver.layout = "overlap"`` on scenes ``"auto"`` splits: the frames are the
+    serial run's bit for bit all the same."""
+    args = ["run", str(REPO / "scenes" / scene), "--frames", "2", *ARGS, *extra]
+    serial, out = tmp_path / "serial", tmp_path / "overlap"
+    proc = wrinkles(*args, "--out", str(serial), timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    proc = mpiexec(["-m", "wrinkles", *args, "--out", str(out),
+                    "--set", "shell.solver.layout='overlap'"], timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert json.loads((out / "summary.json").read_text())["run"]["layout"] == "overlap"
+    assert_same_run(serial, out)
+
+
+@pytest.mark.mpi
 def test_a_resumed_overlapped_run_equals_the_resumed_serial_run(serial, mpiexec, tmp_path):
     """Two overlapped frames, then ``--resume --frames 4`` on two ranks (overlapped again)
     and on one rank: both equal the serial run resumed at frame 2 bit for bit, and the

@@ -17,8 +17,9 @@ per scene and code:
   iteration that factorised), shell set-up method and
   threads when the code records them;
 * the frames' time: process CPU time of the frames (``cpu_time`` of each frame record; for
-  code that does not record it, the frames' wall time, marked ``*``: a serial, one-thread run
-  on an idle core has CPU = wall) and wall time, and seconds per frame;
+  code that does not record it and for runs on several ranks, the frames' wall time, marked
+  ``*``: a serial, one-thread run on an idle core has CPU = wall, rank 0's CPU leaves out the
+  other ranks' work) and wall time, and seconds per frame;
 * the process's total user + system CPU (``resource.getrusage`` of the child: set-up, JIT and
   output included);
 * the final shell energy, the most self-intersecting face pairs of any frame (``x-pairs``,
@@ -162,7 +163,7 @@ def print_row(scene: str, label: str, r: dict[str, Any]) -> None:
         return
     n = max(r["frames"], 1)
     cpu = r["frames_cpu"]
-    shown, mark = (cpu, " ") if cpu is not None else (r["frames_wall"], "*")
+    shown, mark = (cpu, " ") if cpu is not None and r["ranks"] == 1 else (r["frames_wall"], "*")
     failed, total = sum(r["failed_factorizations"]), sum(r["factorizations"])
     speedup = f"{r['speedup']:5.2f}x" if r.get("speedup") else f"{'-':>6}"
     memory = f"{r['peak_memory_mb']:7.0f}" if r.get("peak_memory_mb") else f"{'-':>7}"
@@ -195,8 +196,10 @@ HEADER = (f"{'scene':>18} {'code':>8} {'np':>2} {'method':>9} {'thr':>3} {'frm':
 def spread_table(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Print and return mean, min and max over the seeds per scene, code and rank count.
 
-    Shell iterations and failed factorisations of all frames, the frames' CPU (wall where the
-    code does not record CPU) and the final shell energy; runs that failed are counted apart.
+    Shell iterations and failed factorisations of all frames, the frames' time (CPU of a serial
+    run, wall where the code does not record CPU or the run has several ranks: rank 0's CPU
+    leaves out the others' work and its own waits) and the final shell energy; runs that failed
+    are counted apart.
     """
     print(f"\nspread over the seeds (mean [min - max]):\n{'scene':>18} {'code':>8} {'np':>2} "
           f"{'runs':>4} {'shell its':>18} {'failed %':>9} {'frames s':>20} {'final W':>36}")
@@ -210,8 +213,8 @@ def spread_table(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
         its = [sum(r["shell_iterations"]) for r in ok]
         failed = [100.0 * sum(r["failed_factorizations"]) / max(sum(r["factorizations"]), 1)
                   for r in ok]
-        times = [r["frames_cpu"] if r["frames_cpu"] is not None else r["frames_wall"]
-                 for r in ok]
+        times = [r["frames_cpu"] if r["frames_cpu"] is not None and ranks == 1
+                 else r["frames_wall"] for r in ok]
         energy = [_last_energy(r["shell_energy"]) for r in ok]
         entry = {"scene": scene, "code": code, "ranks": ranks, "runs": len(ok),
                  "failed_runs": len(runs) - len(ok),

@@ -65,6 +65,8 @@ LOOKAHEAD = 2
 """Frames the body rank may run ahead of the shell rank."""
 POLL_SECONDS = 2e-4
 """Sleep between probes of a rank waiting for the other (:func:`patient_recv`)."""
+Failure = tuple[type[WrinklesError], str]
+"""An error passed to the other rank: its class and message."""
 MAX_BODY_DOFS = 2500
 """Bodies up to this many dofs overlap under ``"auto"``: their stage does not divide over two
 ranks (the demo's 1 050 dofs); the full sofa's 4 386 and the bunny's 14 010 do and keep
@@ -207,7 +209,7 @@ def single_thread(scene: Scene) -> Scene:
 
 def agreed(comm: MPI.Comm, make: Callable[[], Run]) -> Run:
     """Run this rank's set-up; if any rank's failed, raise that error on every rank."""
-    failure: tuple[type[WrinklesError], str] | None = None
+    failure: Failure | None = None
     try:
         run = make()
     except WrinklesError as exc:
@@ -233,11 +235,6 @@ def patient_recv(comm: MPI.Comm, source: int, tag: int) -> Any:
     while not comm.Iprobe(source=source, tag=tag):
         time.sleep(POLL_SECONDS)
     return comm.recv(source=source, tag=tag)
-
-
-def error_of(code: int, message: str) -> WrinklesError:
-    """Return the error this rank raises for the other rank's failure of exit ``code``."""
-    return InputError(message) if code == InputError.exit_code else SolverError(message)
 
 
 class ShellSide:
@@ -273,18 +270,20 @@ class ShellSide:
             raise BodyRankFailure(message["error"], message["diagnostic"])
         return {**message["values"], "body_rank_time": message["seconds"]}
 
-    def done(self, frame: int, status: str, code: int = 0, message: str = "") -> None:
-        """Tell the body rank that ``frame`` is complete (``ok``) or the run stopped."""
-        self.sent.append(self.comm.isend((frame, status, code, message), dest=BODY_RANK,
-                                         tag=DONE))
+    def done(self, frame: int, status: str, failure: Failure | None = None) -> None:
+        """Tell the body rank that ``frame`` is complete (``ok``) or the run stopped.
+
+        ``failure`` is the stopping error's class and message; the body rank raises it alike.
+        """
+        self.sent.append(self.comm.isend((frame, status, failure), dest=BODY_RANK, tag=DONE))
 
     def frames(self, log: Callable[[str], None]) -> None:
         """Run the frames; on a failure stop the body rank, record it and raise."""
         try:
             run_frames(self.run, log, render=False)
         except Exception as exc:
-            code = exc.exit_code if isinstance(exc, WrinklesError) else 2
-            self.done(len(self.run.records) + 1, "stop", code, one_line(str(exc)))
+            kind = type(exc) if isinstance(exc, WrinklesError) else SolverError  # exit 2
+            self.done(len(self.run.records) + 1, "stop", (kind, one_line(str(exc))))
             if not isinstance(exc, BodyRankFailure):
                 self.drain()
             MPI.Request.Waitall(self.sent)
@@ -306,7 +305,7 @@ class ShellSide:
     def drain(self) -> None:
         """Receive the body rank's frames still in flight, up to its ``end`` or failure."""
         while True:
-            message = self.comm.recv(source=BODY_RANK, tag=FRAME)
+            message = patient_recv(self.comm, BODY_RANK, FRAME)
             if "end" in message or "error" in message:
                 return
 
@@ -363,10 +362,11 @@ class BodySide:
     def wait(self, frame: int) -> None:
         """Wait until rank 0 has completed ``frame``; raise its error if it stopped."""
         while self.confirmed < frame:
-            _, status, code, message = patient_recv(self.comm, SHELL_RANK, DONE)
+            _, status, failure = patient_recv(self.comm, SHELL_RANK, DONE)
             if status == "stop":
                 if not self.failed:  # rank 0 drains the frames in flight up to this
                     self.comm.send({"end": True}, dest=SHELL_RANK, tag=FRAME)
                 MPI.Request.Waitall(self.sent)
-                raise error_of(code, message)
+                kind, message = failure
+                raise kind(message)
             self.confirmed += 1

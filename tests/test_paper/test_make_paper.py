@@ -117,7 +117,6 @@ def test_ball_sofa_numbers_match_its_run(build):
     assert "render" not in ball  # quick mode renders nothing
     two = ball["two_ranks"]  # the same scene under mpiexec -n 2: overlapped, the same frames
     assert two["layout"] == "overlap" and two["same_frames"] is True
-    assert two["frame_wall_time_s"] > 0.0
     assert "takes the overlap layout" in (build / "paper.md").read_text()
     assert "not made in quick mode" in (build / "paper.md").read_text()
 

@@ -30,6 +30,7 @@ within ``residual_slack`` of it.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, replace
 from typing import Any
@@ -40,7 +41,7 @@ import scipy.sparse as sp
 from meshes.errors import InputError
 from solvers.linear import FactorReport, LinearSolverOptions, SparseDirectSolver
 from solvers.monolithic import PatternSum
-from solvers.multigrid import KrylovBase, MultigridLinearSystem, shifted_product
+from solvers.multigrid import KrylovBase, MultigridLinearSystem
 
 BODY_LINEAR = LinearSolverOptions(symmetric="ldlt", mumps_blr=False)
 """Factorisation of the body block: LDL^T, whose inertia says whether it is SPD."""
@@ -50,44 +51,70 @@ BODY_LINEAR = LinearSolverOptions(symmetric="ldlt", mumps_blr=False)
 class ShellBlock:
     """The shell's part of a joint evaluation, as the shell multigrid reads it."""
 
-    hess: sp.csr_matrix
+    hess: Any
     penalty_factor: sp.csr_matrix | None
 
 
-class JointKrylovSystem(KrylovBase):
-    """Block-preconditioned CG for the joint body-shell Newton matrix (serial, every rank).
+class BodyBlock:
+    """``M_uu = K_u + F_u^T F_u + tau I`` factorised exactly (MUMPS LDL^T, serial).
 
-    Same interface as the shell's Newton-system solvers (``factorize(ev, tau)``,
-    ``solve(b)``, ``times()``). ``ev`` is a joint evaluation whose ``hess`` and
-    ``penalty_factor`` are ``blockdiag(K_x, K_u)`` and ``F`` and whose ``blocks`` are
-    ``(K_x, K_u)`` (:class:`solvers.monolithic.CoupledEval`). Its CG leaves
-    ``negative_curvature`` False: a failed CG with stale Chebyshev bounds is always repeated
-    with new ones (docs/notes/multigrid.md, "Repeating a failed CG").
+    The pattern is fixed at the first call (a zero diagonal for the shift and ``F_u^T F_u``
+    joined to ``K_u``'s), so MUMPS' analysis runs once.
 
     Args:
-        shell: The shell's multigrid (its hierarchy ends at the shell's ``3 n`` dofs); its
-            options (forcing, CG iterations, residual slack) are this solver's too.
-        shell_factor: The shell's penalty factor ``G`` (None without penalty).
+        body_factor: ``F_u = -G B`` (pinned columns zero), or None without penalty.
+
+    """
+
+    def __init__(self, body_factor: sp.csr_matrix | None) -> None:
+        self._penalty = None if body_factor is None else (body_factor.T @ body_factor).tocsr()
+        self._sum: PatternSum | None = None
+        self._constant: list[sp.csr_matrix] | None = None
+        self._solver: SparseDirectSolver | None = None
+
+    def factorize(self, k_u: sp.csr_matrix, tau: float) -> FactorReport:
+        """Factorise ``M_uu`` for ``K_u`` and ``tau``; ``usable_spd`` says whether it is SPD."""
+        n = k_u.shape[0]
+        if self._constant is None:
+            diagonal = sp.csr_matrix((np.zeros(n), np.arange(n), np.arange(n + 1)), shape=(n, n))
+            self._constant = [diagonal] + ([self._penalty] if self._penalty is not None else [])
+        pieces = [sp.csr_matrix(k_u), *self._constant]
+        if self._sum is None:
+            self._sum = PatternSum((n, n), [(m, 0, 0) for m in pieces])
+        m_uu = self._sum(pieces)
+        if self._solver is None:
+            self._solver = SparseDirectSolver(m_uu, BODY_LINEAR)
+        return self._solver.factorize(m_uu, tau)
+
+    def solve(self, r: np.ndarray) -> np.ndarray:
+        """Return ``M_uu^{-1} r`` with the last factorisation."""
+        assert self._solver is not None  # factorize() ran first (internal invariant)
+        return self._solver.solve(r)
+
+
+class JointCG(KrylovBase):
+    """Preconditioned CG on the joint matrix ``M`` with ``S = diag(V_x, M_uu^{-1})``.
+
+    The Newton-system interface of the shell Newton (``factorize(ev, tau)``, ``solve(b)``,
+    ``times()``) for a joint evaluation whose ``blocks`` are ``(K_x, K_u)``
+    (:class:`solvers.monolithic.CoupledEval`). A subclass holds the shell block and its
+    vectors: :meth:`_shell_setup`, :meth:`apply`, :meth:`precondition`, :meth:`dot` and the
+    maps :meth:`_local` / :meth:`_full` between the Newton's full vectors and the CG's. The
+    CG leaves ``negative_curvature`` False: a failed CG with stale Chebyshev bounds is
+    always repeated with new ones (docs/notes/multigrid.md, "Repeating a failed CG").
+
+    Args:
+        shell: The shell block's multigrid (serial or split over the ranks), without the
+            phase space; its options (forcing, CG iterations, residual slack) are the CG's.
         body_factor: ``F_u = -G B`` (pinned columns zero), the body columns of ``F``.
 
     """
 
-    def __init__(self, shell: MultigridLinearSystem, shell_factor: sp.csr_matrix | None,
-                 body_factor: sp.csr_matrix | None) -> None:
-        if shell.phase is not None:
-            raise InputError("JointKrylovSystem: the shell multigrid must run without the "
-                             "phase space (its V-cycle is the shell block's preconditioner)")
+    def __init__(self, shell: Any, body_factor: sp.csr_matrix | None) -> None:
         super().__init__(shell.options)
         self.shell = shell
-        self.n = shell.n
-        self.shell_factor = shell_factor
-        self._body_penalty = None if body_factor is None else (body_factor.T @ body_factor).tocsr()
-        self._current: tuple[Any, float] | None = None
-        self._sum: PatternSum | None = None
-        self._constant: list[sp.csr_matrix] | None = None
-        self._body: SparseDirectSolver | None = None
-
-    # ----------------------------------------------------------------------------- set-up
+        self.body = BodyBlock(body_factor)
+        self._tau: float | None = None
 
     def factorize(self, ev: Any, tau: float) -> FactorReport:
         """Set up both diagonal blocks of ``M`` for ``ev`` and shift ``tau``.
@@ -97,80 +124,79 @@ class JointKrylovSystem(KrylovBase):
         """
         start = time.perf_counter()
         k_x, k_u = ev.blocks
-        if k_x.shape[0] != self.n:
-            raise InputError(f"JointKrylovSystem: shell block of {k_x.shape[0]} dofs, the "
-                             f"multigrid has {self.n}")
-        self._current = None
-        report = self.shell.factorize(ShellBlock(k_x, self.shell_factor), tau)
+        self._tau = None
+        report = self._shell_setup(k_x, tau)
         if not report.usable_spd:
             return self._setup_done(start, report)
-        body = self._factorize_body(k_u, tau)
+        body = self.body.factorize(k_u, tau)
         if not body.usable_spd:
             return self._setup_done(start, replace(
                 body, success=False, reason="body block not positive definite"))
-        self._current = (ev, tau)
+        self._k_u, self._tau = k_u, float(tau)
         return self._setup_done(start, FactorReport(success=True, shift=float(tau)))
 
-    def _factorize_body(self, k_u: sp.csr_matrix, tau: float) -> FactorReport:
-        """Factorise ``M_uu = K_u + F_u^T F_u + tau I`` (pattern and analysis kept)."""
-        n = k_u.shape[0]
-        if self._constant is None:  # a zero diagonal (for the shift) and F_u^T F_u, fixed
-            diagonal = sp.csr_matrix((np.zeros(n), np.arange(n), np.arange(n + 1)), shape=(n, n))
-            self._constant = [diagonal] + ([self._body_penalty]
-                                           if self._body_penalty is not None else [])
-        pieces = [sp.csr_matrix(k_u), *self._constant]
-        if self._sum is None:
-            self._sum = PatternSum((n, n), [(m, 0, 0) for m in pieces])
-        m_uu = self._sum(pieces)
-        if self._body is None:
-            self._body = SparseDirectSolver(m_uu, BODY_LINEAR)
-        return self._body.factorize(m_uu, tau)
+    def _shell_setup(self, k_x: Any, tau: float) -> FactorReport:
+        """Set the shell block's multigrid up for ``K_x + G^T G + tau I`` (subclass)."""
+        raise NotImplementedError
 
-    # ----------------------------------------------------------------------------- solve
-
-    def apply(self, v: np.ndarray) -> np.ndarray:
-        """Return ``M v`` of the current system."""
-        assert self._current is not None  # factorize() succeeded first (internal invariant)
-        return shifted_product(*self._current, v)
+    def dot(self, a: np.ndarray, b: np.ndarray) -> float:
+        """Inner product of two CG vectors (subclass: reduced over ranks when split)."""
+        raise NotImplementedError
 
     def precondition(self, r: np.ndarray) -> np.ndarray:
-        """Return ``S r``: a shell V-cycle on the shell rows, the body block solved exactly."""
-        assert self._body is not None  # factorize() succeeded first (internal invariant)
-        body = self._body.solve(r[self.n:])
-        return np.concatenate([self.shell.precondition(r[:self.n]), body])
+        """Return ``S r`` of a CG vector (subclass)."""
+        raise NotImplementedError
+
+    def _local(self, full: np.ndarray) -> np.ndarray:
+        """Return the CG vector of a full (3 (n + n_b),) Newton vector (subclass)."""
+        raise NotImplementedError
+
+    def _full(self, local: np.ndarray) -> np.ndarray:
+        """Return the full Newton vector of a CG vector, the same on every rank (subclass)."""
+        raise NotImplementedError
 
     def _accepted_cg(self, rhs: np.ndarray) -> np.ndarray | None:
         """PCG from zero; the solution if it converged to a true residual within the slack."""
-        if self._current is None:
+        if self._tau is None:
             return None
-        x, its, converged = self._cg(rhs)
+        b = self._local(rhs)
+        x, its, converged = self._cg(b)
         self.stats.iterations.append(its)
-        return self._kept(x, rhs, converged)
+        residual = self._residual(x, b) if converged else np.inf
+        if residual > self.options.residual_slack * self.eta:
+            return None
+        self.stats.true_residuals.append(residual)
+        return self._full(x)
+
+    def _residual(self, x: np.ndarray, b: np.ndarray) -> float:
+        """``||b - M x|| / ||b||`` of CG vectors."""
+        r = b - self.apply(x)
+        return math.sqrt(self.dot(r, r)) / (math.sqrt(self.dot(b, b)) or 1.0)
 
     def _cg(self, rhs: np.ndarray) -> tuple[np.ndarray, int, bool]:
         """``(x, iterations, converged)`` of preconditioned CG to ``||r|| <= eta ||b||``."""
         x = np.zeros_like(rhs)
         r = np.array(rhs, dtype=np.float64)
-        stop = self.eta * float(np.linalg.norm(r))
+        stop = self.eta * math.sqrt(self.dot(r, r))
         if stop == 0.0:
             return x, 0, True
         z = self.precondition(r)
-        rz = float(r @ z)
+        rz = self.dot(r, z)
         p = z.copy()
         for k in range(1, self.options.max_iterations + 1):
             if not rz > 0.0:  # S not positive definite on r
                 return x, k, False
             q = self.apply(p)
-            curvature = float(p @ q)
+            curvature = self.dot(p, q)
             if not curvature > 0.0:  # negative curvature: M is not SPD
                 return x, k, False
             alpha = rz / curvature
             x += alpha * p
             r -= alpha * q
-            if float(np.linalg.norm(r)) <= stop:
+            if math.sqrt(self.dot(r, r)) <= stop:
                 return x, k, True
             z = self.precondition(r)
-            rz, rz_old = float(r @ z), rz
+            rz, rz_old = self.dot(r, z), rz
             p = z + (rz / rz_old) * p
         return x, self.options.max_iterations, False
 
@@ -193,4 +219,59 @@ class JointKrylovSystem(KrylovBase):
         return (self.stats.setup_time, 0.0, self.stats.solve_time)
 
 
-__all__ = ["JointKrylovSystem", "ShellBlock"]
+class JointKrylovSystem(JointCG):
+    """Block-preconditioned CG for the joint body-shell Newton matrix (serial, every rank).
+
+    Args:
+        shell: The shell's multigrid (its hierarchy ends at the shell's ``3 n`` dofs); its
+            options (forcing, CG iterations, residual slack) are this solver's too.
+        shell_factor: The shell's penalty factor ``G`` (None without penalty).
+        body_factor: ``F_u = -G B`` (pinned columns zero), the body columns of ``F``.
+
+    """
+
+    def __init__(self, shell: MultigridLinearSystem, shell_factor: sp.csr_matrix | None,
+                 body_factor: sp.csr_matrix | None) -> None:
+        if shell.phase is not None:
+            raise InputError("JointKrylovSystem: the shell multigrid must run without the "
+                             "phase space (its V-cycle is the shell block's preconditioner)")
+        super().__init__(shell, body_factor)
+        self.n = shell.n
+        self.shell_factor = shell_factor
+        self.factor = (None if shell_factor is None or body_factor is None
+                       else sp.hstack([shell_factor, body_factor], format="csr"))
+
+    def _shell_setup(self, k_x: Any, tau: float) -> FactorReport:
+        """Set the shell multigrid up for ``K_x + G^T G + tau I``."""
+        if k_x.shape[0] != self.n:
+            raise InputError(f"JointKrylovSystem: shell block of {k_x.shape[0]} dofs, the "
+                             f"multigrid has {self.n}")
+        self._k_x = k_x
+        return self.shell.factorize(ShellBlock(k_x, self.shell_factor), tau)
+
+    def apply(self, v: np.ndarray) -> np.ndarray:
+        """Return ``M v`` of the current system."""
+        assert self._tau is not None  # factorize() succeeded first (internal invariant)
+        out = np.concatenate([self._k_x @ v[:self.n], self._k_u @ v[self.n:]]) + self._tau * v
+        if self.factor is not None:
+            out += self.factor.T @ (self.factor @ v)
+        return out
+
+    def precondition(self, r: np.ndarray) -> np.ndarray:
+        """Return ``S r``: a shell V-cycle on the shell rows, the body block solved exactly."""
+        return np.concatenate([self.shell.precondition(r[:self.n]), self.body.solve(r[self.n:])])
+
+    def dot(self, a: np.ndarray, b: np.ndarray) -> float:
+        """Return ``a . b``."""
+        return float(a @ b)
+
+    def _local(self, full: np.ndarray) -> np.ndarray:
+        """Return the full vector itself (serial: the CG runs on full vectors)."""
+        return np.asarray(full, dtype=np.float64)
+
+    def _full(self, local: np.ndarray) -> np.ndarray:
+        """Return the CG vector itself."""
+        return local
+
+
+__all__ = ["BodyBlock", "JointCG", "JointKrylovSystem", "ShellBlock"]

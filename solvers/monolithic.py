@@ -28,8 +28,11 @@ minimises it (:mod:`solvers.shell_newton`: shifted Newton matrices, Armijo line 
 solved like the shell's own, by the method its size chose: factorised (MUMPS LDL^T with
 inertia checks, :data:`JOINT_LINEAR`) or by CG with the shell's multigrid on the shell block
 and the body block factorised (:mod:`solvers.joint_krylov`). Under MPI the body's gradient
-and Hessian are gathered on every rank and the joint system is solved redundantly; the
-scalars every rank decides on (``Pi``) are rank 0's, so all ranks take the same steps.
+and Hessian are gathered on every rank; the scalars every rank decides on (``Pi``) are rank
+0's, so all ranks take the same steps. The shell part is then split over the ranks
+(:mod:`solvers.decomposition.split_coupled`, from the size
+:func:`solvers.solver_choice.choose_joint_split` names) or, for a small shell, this energy's
+joint system is solved whole on every rank.
 """
 
 from __future__ import annotations

@@ -32,6 +32,10 @@ The choices, all by what the run is, not by flags:
   affinity, which batch systems and ``taskset`` set); a smaller shell keeps one thread (the
   threads' work is too small to shorten the frame, their CPU time is paid), and so does every
   rank under MPI (one core per rank).
+* **The two-way joint system over the ranks by size.** Under MPI the joint body-shell system
+  is split over the ranks (:mod:`solvers.decomposition.split_coupled`) for a multigrid-CG
+  shell of at least :data:`SPLIT_JOINT_FROM_VERTICES` vertices; a smaller one is solved
+  whole on every rank, where messages bound its CG (:func:`choose_joint_split`).
 """
 
 from __future__ import annotations
@@ -195,3 +199,21 @@ def choose_threads(threads: int, ranks: int, vertices: int) -> int:
     if threads:
         return threads
     return available_cores() if ranks == 1 and vertices >= THREADS_FROM_VERTICES else 1
+
+
+SPLIT_JOINT_FROM_VERTICES: int = 4000
+"""Shell vertex count from which a two-way scene on several ranks splits its joint system."""
+
+
+def choose_joint_split(ranks: int, vertices: int, method: str) -> bool:
+    """Whether the two-way joint Newton system is split over the ranks.
+
+    Returns:
+        True on more than one rank for a shell solved by multigrid-CG with at least
+        :data:`SPLIT_JOINT_FROM_VERTICES` vertices: the frames of the two-way bar at
+        10 434 shell vertices take half the time on 2 ranks split, those at 2 610 vertices
+        more than solved whole on every rank (docs/notes/two-way-coupling.md). The direct
+        path (small shells) is always solved whole.
+
+    """
+    return ranks > 1 and method == "multigrid" and vertices >= SPLIT_JOINT_FROM_VERTICES

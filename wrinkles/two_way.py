@@ -25,6 +25,12 @@ from models.coupling import PenaltyCoupling, body_force_function, penalty_force
 from solvers.body import Body
 from solvers.body_newton import EnergyNewton, NewtonResult
 from solvers.coupling import coupled_frame
+from solvers.decomposition.split_coupled import (
+    SplitCoupledEnergy,
+    SplitJointKrylov,
+    split_joint_system,
+)
+from solvers.decomposition.split_newton import SplitNewtonSolver
 from solvers.joint_krylov import JointKrylovSystem
 from solvers.monolithic import JOINT_LINEAR, BodyUnknowns, CoupledEnergy
 from solvers.multigrid import MultigridLinearSystem
@@ -34,6 +40,7 @@ from solvers.shell_newton import (
     ShellSolveError,
     ShellSolveReport,
 )
+from solvers.solver_choice import choose_joint_split
 from wrinkles.shell_output import Writer
 from wrinkles.shell_setup import Shell
 from wrinkles.shell_stage import (
@@ -71,6 +78,8 @@ class CoupledStep:
         self.solvers: dict[int, tuple[CoupledEnergy, ShellNewtonSolver]] = {}
         self.frame, self.perturb = 0, True
         self.reports: list[ShellSolveReport] = []
+        self.joint_system = "whole"
+        """How the ranks hold the joint system: "whole" on every rank, or "split"."""
 
     def start_frame(self, frame: int) -> None:
         """Begin frame ``frame``: its first solve adds the imperfection."""
@@ -82,9 +91,33 @@ class CoupledStep:
         if key not in self.solvers:
             energy = CoupledEnergy(self.shell.energy, self.shell.rest, self.B,
                                    BodyUnknowns(problem))
-            self.solvers[key] = (energy, ShellNewtonSolver(energy, self.options,
-                                                           krylov=self._krylov(energy)))
+            split = self._split(energy)
+            if split is not None:
+                self.joint_system = "split"
+                self.solvers[key] = (energy, ShellNewtonSolver(split[0], self.options,
+                                                               krylov=split[1]))
+            else:
+                self.solvers[key] = (energy, ShellNewtonSolver(energy, self.options,
+                                                               krylov=self._krylov(energy)))
         return self.solvers[key]
+
+    def _split(self, energy: CoupledEnergy) -> tuple[SplitCoupledEnergy, SplitJointKrylov] | None:
+        """Return the joint energy and CG with the shell split over the ranks, or None.
+
+        Where the shell's own solver is split over the ranks
+        (:func:`wrinkles.shell_setup.shell_solver`) and :func:`solvers.solver_choice.
+        choose_joint_split` says so (multigrid-CG, the shell's size): each rank then
+        evaluates and holds its own vertices' rows of the joint system
+        (:mod:`solvers.decomposition.split_coupled`). Otherwise every rank solves the whole
+        joint system.
+        """
+        solver, hierarchy = self.shell.solver, self.shell.hierarchy
+        newton = self.shell.options.internals.newton
+        if (not isinstance(solver, SplitNewtonSolver) or hierarchy is None
+                or energy.factor is None or not choose_joint_split(
+                    solver.comm.size, energy.n, newton.linear_method)):
+            return None
+        return split_joint_system(solver, energy, hierarchy.prolongations(), newton.multigrid)
 
     def _krylov(self, energy: CoupledEnergy) -> JointKrylovSystem | None:
         """Return the joint CG when the shell is solved by multigrid-CG, else None (direct).
@@ -239,6 +272,7 @@ def monolithic_stage(shell: Shell, body: Body, body_stage: Callable[[int], Mappi
         write(frame, body.t)
         force_body = (step.B.T @ shell.force).sum(axis=0).tolist()
         return {**record, **shell_record(shell, report), "coupling_scheme": "monolithic",
+                "coupling_joint_system": step.joint_system,
                 **coupling_record(shell, report.iterations,
                                   report.grad_norm / max(shell.gradient_scale, 1e-300),
                                   report.converged, force_body)}

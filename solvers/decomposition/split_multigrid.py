@@ -386,6 +386,30 @@ class SplitMultigridSystem(KrylovBase):
 
     # ----------------------------------------------------------------------------- solve
 
+    @property
+    def fine_matrix(self) -> Any:
+        """The fine level's ``A + tau I`` of the last set-up (``MATMPISBAIJ``, owned rows)."""
+        return self._fine_products.mat
+
+    @property
+    def fine_penalty(self) -> Any:
+        """The fine level's ``G`` (``MATMPIAIJ``, rows by cluster owner), None without."""
+        penalty = self._penalty[-1]
+        return None if penalty is None else penalty[0]
+
+    def precondition(self, r: np.ndarray) -> np.ndarray:
+        """Return one V-cycle (PCMG from zero) applied to this rank's rows ``r`` (collective).
+
+        The cycle is symmetric, as the serial one (:meth:`solvers.multigrid.
+        MultigridLinearSystem.precondition`): it preconditions an outer CG
+        (:mod:`.split_coupled`). ``r`` and the result: owned fine dofs, PETSc order.
+        """
+        assert self._vecs is not None  # factorize() ran first (internal invariant)
+        b, x, _ = self._vecs
+        b.setArray(np.ascontiguousarray(r, dtype=np.float64))
+        self._ksp.getPC().apply(b, x)
+        return x.getArray(readonly=True).copy()
+
     def _failed(self, rhs: np.ndarray) -> np.ndarray:
         """Return NaN (a failed direction: the shell Newton moves to its next shift)."""
         return np.full(3 * self.energy.n_vertices, np.nan)

@@ -195,6 +195,15 @@ class SplitShellEnergy:
         full[self._dof_order] = buf
         return full
 
+    def set_target(self, y: np.ndarray, normals: bool = True) -> None:
+        """Set the global penalty target y (n, 3) and this rank's local energy's share of it.
+
+        ``normals``: as :meth:`models.shell.energy.ShellEnergy.set_target` (False keeps the
+        flip barrier's reference normals, within a solve in which y moves).
+        """
+        self.target = np.array(y, dtype=np.float64)
+        self.patch.energy.set_target(self.target[self.patch.local], normals=normals)
+
     def _local_x(self, x: np.ndarray) -> np.ndarray:
         """Local positions (owned, then halo) from the global x (n, 3)."""
         return np.asarray(x, dtype=np.float64).reshape(-1, 3)[self.patch.local]
@@ -504,8 +513,7 @@ class SplitNewtonSolver:
 
     def set_target(self, y: np.ndarray) -> None:
         """Set a new penalty target (n, 3) for the next frame (the same on every rank)."""
-        self.energy.target = np.array(y, dtype=np.float64)
-        self.energy.patch.energy.set_target(self.energy.target[self.energy.patch.local])
+        self.energy.set_target(y)
 
     def set_hinge_branch(self, branch: np.ndarray | None) -> None:
         """Set the hinges' reference angles (global, Hn) of this rank's local energy.

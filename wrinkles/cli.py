@@ -159,6 +159,7 @@ def command_check(args: argparse.Namespace) -> int:
     """
     from models.backend import MPI
     from models.embedding.surface import boundary_surface
+    from solvers.solver_choice import choose_joint_split
     from wrinkles.output import json_text
     from wrinkles.overlap import layout_for, scene_sizes
     from wrinkles.runner import read_tet_mesh
@@ -179,6 +180,11 @@ def command_check(args: argparse.Namespace) -> int:
         resolved["shell"] = shell_report(scene.shell, scene.material, surface.vertices,
                                          surface.faces, static=scene.body.dynamics == "static")
         resolved["shell"]["layout_on_2_ranks"] = layout_for(scene, 2, lambda: scene_sizes(scene))
+        shell = scene.shell
+        if shell.coupling.mode == "two_way" and shell.internals.coupling.scheme == "monolithic":
+            split = choose_joint_split(2, resolved["shell"]["vertices"],
+                                       resolved["shell"]["solver"]["method"])
+            resolved["shell"]["joint_system_on_2_ranks"] = "split" if split else "whole"
     print(json_text({"scene": scene_dict(scene), "resolved": resolved}), end="", flush=True)
     return 0
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support import LENGTH, SKIN, bar_scene, dumps
+from support import LENGTH, REPO, SKIN, bar_scene, dumps, wrinkles
 
 from solvers.solver_choice import SPLIT_JOINT_FROM_VERTICES, choose_joint_split
 from wrinkles.checkpoint import CHECKPOINT_NAME, read_state
@@ -104,3 +104,16 @@ def test_joint_split_by_ranks_size_and_method() -> None:
     assert not choose_joint_split(2, n - 1, "multigrid")
     assert not choose_joint_split(1, 10 * n, "multigrid")
     assert not choose_joint_split(2, 10 * n, "direct")
+
+
+@pytest.mark.parametrize(("scene", "levels", "expected"), [
+    ("two_way_bar", 2, "whole"), ("two_way_bar", 3, "split"), ("default", 3, None)])
+def test_check_names_how_two_ranks_hold_the_joint_system(scene, levels, expected) -> None:
+    """``wrinkles check`` of a two-way scene says whether 2 ranks split its joint system:
+    whole at the scene's 2 610 shell vertices, split at 3 levels (10 434); a one-way scene
+    has no joint system."""
+    proc = wrinkles("check", str(REPO / "scenes" / f"{scene}.toml"), "--set",
+                    f"shell.subdivision.levels={levels}")
+    assert proc.returncode == 0, proc.stderr
+    shell = json.loads(proc.stdout)["resolved"]["shell"]
+    assert shell.get("joint_system_on_2_ranks") == expected

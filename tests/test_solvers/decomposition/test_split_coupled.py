@@ -44,12 +44,12 @@ def test_split_joint_system_equals_the_serial_one(mpiexec, ranks) -> None:
     assert out["rank_spread"] == 0.0
 
 
-def stretched_bar(tmp_path: Path) -> Path:
+def stretched_bar(tmp_path: Path, frames: int = 1) -> Path:
     shell = {"subdivision": {"levels": 3}, "skin": SKIN, "energy": {"k_P": 1.0e3},
              "solver": {"rtol": 1e-10, "max_iterations": 300},
              "imperfection": 0.0, "coupling": {"mode": "two_way"}}
     scene = tmp_path / "bar.toml"
-    scene.write_text(dumps(bar_scene((0.04 * LENGTH, 0.0, 0.0), 1, shell)))
+    scene.write_text(dumps(bar_scene((0.04 * LENGTH, 0.0, 0.0), frames, shell)))
     return scene
 
 
@@ -93,6 +93,33 @@ def test_split_two_way_run_equals_serial(serial_bar, mpiexec, tmp_path, ranks) -
         moved = float(np.abs(states[0][stage][name] - states[1][stage][name]).max())
         print(stage, name, moved)
         assert moved < 1e-9 * LENGTH
+
+
+@pytest.mark.mpi
+def test_split_two_way_run_resumed_on_one_rank_equals_the_straight_run(mpiexec,
+                                                                       tmp_path) -> None:
+    """Frame 1 on 2 ranks (the joint system split), then ``--resume`` on 1 rank to frame 2
+    (whole): frame 2 of the straight serial run, the same coupled iterations within one,
+    energies to 1e-9 and shell positions to 1e-9 of the bar's length (a unique minimum)."""
+    scene = stretched_bar(tmp_path, frames=2)
+    straight, out = tmp_path / "straight", tmp_path / "out"
+    proc = wrinkles("run", str(scene), "--out", str(straight))
+    assert proc.returncode == 0, proc.stderr
+    proc = mpiexec(["-m", "wrinkles", "run", str(scene), "--out", str(out), "--frames", "1"],
+                   n=2, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    proc = wrinkles("run", str(scene), "--out", str(out), "--resume")
+    assert proc.returncode == 0, proc.stderr
+    a, b = (json.loads((o / "summary.json").read_text())["frames"] for o in (straight, out))
+    assert [r["details"]["coupling_joint_system"] for r in b] == ["split", "whole"]
+    print([r["details"]["coupling_iterations"] for r in a + b], a[1]["energy"], b[1]["energy"])
+    assert abs(a[1]["details"]["coupling_iterations"]
+               - b[1]["details"]["coupling_iterations"]) <= 1
+    assert b[1]["energy"] == pytest.approx(a[1]["energy"], rel=1e-9)
+    states = [read_state(o / CHECKPOINT_NAME).arrays["shell"]["positions"]
+              for o in (straight, out)]
+    print("max shell difference", float(np.abs(states[0] - states[1]).max()))
+    assert float(np.abs(states[0] - states[1]).max()) < 1e-9 * LENGTH
 
 
 def test_joint_split_by_ranks_size_and_method() -> None:

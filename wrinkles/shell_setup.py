@@ -59,6 +59,7 @@ from solvers.multigrid import ShellHierarchy
 from solvers.shell_newton import ShellNewtonOptions, ShellNewtonSolver
 from solvers.solver_choice import (
     choose_factor_reuse,
+    choose_joint_split,
     choose_linear_method,
     choose_phase_space,
     choose_shift_schedule,
@@ -667,7 +668,14 @@ def build_shell(body: Body, options: ShellOptions, material: Material,
     energy = ShellEnergy(topology, rest_state, params, clusters.H)
     hierarchy = ShellHierarchy(sub)
     solver = shell_solver(energy, options.internals.newton, hierarchy, clusters, body.mesh.comm)
-    split = f" split over {body.mesh.comm.size} ranks" if body.mesh.comm.size > 1 else ""
+    ranks = body.mesh.comm.size
+    split = f" split over {ranks} ranks" if ranks > 1 else ""
+    if ranks > 1 and options.coupling.mode == "two_way" \
+            and options.internals.coupling.scheme == "monolithic":
+        joint = choose_joint_split(ranks, int(rest.shape[0]),
+                                   options.internals.newton.linear_method)
+        split += ("; the two-way joint system split as well" if joint else
+                  "; the two-way joint system solved whole on every rank, the shell being small")
     log(f"shell: energy and solver ({options.solver.method}, {options.solver.threads} "
         f"thread(s){split})")
     facts = {"vertices": int(rest.shape[0]), "faces": int(sub.faces.shape[0]),

@@ -76,6 +76,7 @@ def test_split_two_way_run_equals_serial(serial_bar, mpiexec, tmp_path, ranks) -
     proc = mpiexec(["-m", "wrinkles", "run", str(stretched_bar(tmp_path)), "--out", str(out)],
                    n=ranks, timeout=300)
     assert proc.returncode == 0, proc.stderr
+    assert "the two-way joint system split as well" in proc.stdout
     serial, split = (json.loads((o / "summary.json").read_text())["frames"][0]
                      for o in (serial_bar, out))
     print(serial["details"]["coupling_iterations"], split["details"]["coupling_iterations"],

@@ -244,26 +244,37 @@ class CoupledEnergy:
         ``x`` is ``z``, (n + n_b, 3) or flat (the solver's name for its unknowns); the
         gradient is flat (3 (n + n_b),), the Hessian and factor as in the module doc.
         """
+        ev, value, grad, k_u = self.evaluate_with(self.shell, x, order, hessian)
+        if order < 2:
+            return CoupledEval(value, grad, None, None)
+        assert ev.hess is not None and k_u is not None  # order 2
+        return CoupledEval(value, grad, self._hessian(ev.hess, k_u), self.factor,
+                           (ev.hess, k_u))
+
+    def evaluate_with(self, shell: Any, x: np.ndarray, order: int, hessian: Any
+                      ) -> tuple[Any, float, np.ndarray | None, sp.csr_matrix | None]:
+        """Return the shell's evaluation, ``E``, its flat gradient and ``K_u`` at ``x = z``.
+
+        ``shell`` evaluates ``W`` (this energy's, or one split over the ranks,
+        :mod:`solvers.decomposition.split_coupled`): its target is set to ``y(u)`` with the
+        barrier's normals kept. The gradient (order >= 1) and ``K_u`` (order 2) are None
+        below their order.
+        """
         x, u = self.split(x)
         y = self.target(u)
         self.body.set(u.reshape(-1))
-        self.shell.set_target(y, normals=False)
-        ev = self.shell.evaluate(x, order=order, hessian=hessian)
+        shell.set_target(y, normals=False)
+        ev = shell.evaluate(x, order=order, hessian=hessian)
         value = ev.value + self.body.energy()
         if order == 0:
-            return CoupledEval(value, None, None, None)
+            return ev, value, None, None
         op = self.shell.penalty_operator
         f = penalty_force(op, self.k_P, x, y) if op is not None else np.zeros_like(x)
         g_u = self.body.gradient() - (self.BT @ f).reshape(-1)
         g_u[self.body.fixed] = 0.0
         assert ev.grad is not None  # order >= 1
         grad = np.concatenate([ev.grad, g_u])
-        if order == 1:
-            return CoupledEval(value, grad, None, None)
-        assert ev.hess is not None  # order 2
-        k_u = self.body.hessian()
-        return CoupledEval(value, grad, self._hessian(ev.hess, k_u), self.factor,
-                           (ev.hess, k_u))
+        return ev, value, grad, self.body.hessian() if order >= 2 else None
 
     def _hessian(self, K_x: sp.csr_matrix, K_u: sp.csr_matrix) -> sp.csr_matrix:
         """Return the joint Hessian in its fixed union pattern."""

@@ -36,7 +36,6 @@ import scipy.sparse as sp
 
 from meshes.errors import InputError
 from models.backend import MPI
-from models.coupling import penalty_force
 from solvers.decomposition.split_multigrid import SplitMultigridSystem
 from solvers.decomposition.split_newton import OwnedRows, SplitNewtonSolver, SplitShellEnergy
 from solvers.joint_krylov import JointCG
@@ -95,25 +94,10 @@ class SplitCoupledEnergy:
         The value and gradient are the same on every rank; ``hess`` is a :class:`JointRows`
         and ``blocks`` its ``(K_x rows, K_u)``.
         """
-        joint = self.joint
-        xs, u = joint.split(x)
-        y = joint.target(u)
-        joint.body.set(u.reshape(-1))
-        self.shell.set_target(y, normals=False)
-        ev = self.shell.evaluate(xs, order=order, hessian=hessian)
-        value = ev.value + joint.body.energy()
-        if order == 0:
-            return CoupledEval(value, None, None, None)
-        op = joint.shell.penalty_operator
-        f = penalty_force(op, joint.k_P, xs, y) if op is not None else np.zeros_like(xs)
-        g_u = joint.body.gradient() - (joint.BT @ f).reshape(-1)
-        g_u[joint.body.fixed] = 0.0
-        assert ev.grad is not None  # order >= 1
-        grad = np.concatenate([ev.grad, g_u])
-        if order == 1:
+        ev, value, grad, k_u = self.joint.evaluate_with(self.shell, x, order, hessian)
+        if order < 2:
             return CoupledEval(value, grad, None, None)
-        assert isinstance(ev.hess, OwnedRows)  # order 2 of the split energy
-        k_u = joint.body.hessian()
+        assert isinstance(ev.hess, OwnedRows) and k_u is not None  # order 2, split energy
         return CoupledEval(value, grad, JointRows(ev.hess, k_u), None, (ev.hess, k_u))
 
 

@@ -62,6 +62,7 @@ def main() -> None:
     result = {
         "ranks": comm.size,
         "joint_system": step.joint_system,
+        "shared_multigrid": krylov.shell is run.shell.solver.linear,
         "vertices": energy.n,
         "factorized": bool(ok),
         "value_rel": abs(split_ev.value - serial_ev.value) / abs(serial_ev.value),

@@ -351,14 +351,17 @@ def resolve_solver(options: ShellOptions, vertices: int, ranks: int, *,
 
     "auto" becomes the method for a shell of ``vertices`` vertices and its subdivision levels,
     threads 0 the count for that size and ``ranks``, an unset :data:`PHASE_SPACE_KEY` the
-    phase-space choice for that size, and each unset key of the shift ladder and of the
+    phase-space choice for that size (none for the monolithic two-way step, whose joint CG
+    does not use it), and each unset key of the shift ladder and of the
     factorisation reuse the one for a ``static`` load or a dynamic one
     (:mod:`solvers.solver_choice`); the internal options are
     rebuilt from them, so every later reader sees the choice. The vertex count is the whole
     shell's, so every rank count chooses alike.
     """
     by_load = {**choose_shift_schedule(static), **choose_factor_reuse(static)}
-    chosen = {PHASE_SPACE_KEY: choose_phase_space(vertices),
+    joint = options.coupling.mode == "two_way" and options.internals.coupling.scheme == \
+        "monolithic"  # the joint CG's shell block runs without the phase space
+    chosen = {PHASE_SPACE_KEY: choose_phase_space(vertices) and not joint,
               **{f"newton.{key}": value for key, value in by_load.items()}}
     expert_keys = {**{key: value for key, value in chosen.items()
                       if key not in options.solver.options}, **options.solver.options}

@@ -124,12 +124,18 @@ class CoupledStep:
 
         The shell's own choice by size (:mod:`solvers.solver_choice`) decides for the joint
         system too: its cost is the shell's V-cycles plus the coarse body's factorised block.
+        The shell solver's own multigrid serves as the shell block (the monolithic step does
+        not run that solver; it is built without the phase space for it), or a new one
+        where a scene asked for the phase space.
         """
         newton, hierarchy = self.shell.options.internals.newton, self.shell.hierarchy
         if newton.linear_method != "multigrid" or hierarchy is None or energy.factor is None:
             return None
-        shell_mg = MultigridLinearSystem(hierarchy.prolongations(),
-                                         dataclasses.replace(newton.multigrid, phase_space=False))
+        own = getattr(self.shell.solver, "krylov", None)
+        shell_mg = (own if isinstance(own, MultigridLinearSystem) and own.phase is None else
+                    MultigridLinearSystem(hierarchy.prolongations(),
+                                          dataclasses.replace(newton.multigrid,
+                                                              phase_space=False)))
         return JointKrylovSystem(shell_mg, energy.shell.penalty_factor, energy.body_factor)
 
     def _start(self, energy: CoupledEnergy) -> np.ndarray:

@@ -187,13 +187,16 @@ def split_joint_system(split: SplitNewtonSolver, joint: CoupledEnergy,
                        options: MultigridOptions) -> tuple[SplitCoupledEnergy, SplitJointKrylov]:
     """Return the joint energy and CG of ``joint`` on the split shell solver's ownership.
 
-    The shell block's multigrid is built on ``split``'s energy and layout with ``options``
-    (the phase space left out); ``joint.shell.penalty_factor`` is ``G``, the same on every
-    rank.
+    The shell block's multigrid is ``split``'s own when it has no phase space (the split
+    solver itself is not run by the joint step), else one built on its energy and layout with
+    ``options`` without the phase space; ``joint.shell.penalty_factor`` is ``G``, the same on
+    every rank.
     """
     energy = SplitCoupledEnergy(split.energy, joint)
-    shell = SplitMultigridSystem(split.energy, prolongations, joint.shell.penalty_factor,
-                                 split.layout.cluster_rank, replace(options, phase_space=False))
+    own = split.linear
+    shell = (own if isinstance(own, SplitMultigridSystem) and own.phase is None else
+             SplitMultigridSystem(split.energy, prolongations, joint.shell.penalty_factor,
+                                  split.layout.cluster_rank, replace(options, phase_space=False)))
     return energy, SplitJointKrylov(shell, energy)
 
 

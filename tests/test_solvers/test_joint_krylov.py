@@ -113,12 +113,18 @@ def test_body_block_not_spd_fails_the_set_up(runs):
 
 def test_product_path_uses_the_joint_cg(runs):
     """With the shell's method "multigrid" the coupled Newton solves by the joint CG (CG
-    iterations counted, no factorisation of the joint matrix); "direct" factorises."""
+    iterations counted, no factorisation of the joint matrix), whose shell block is the
+    shell solver's own multigrid (not run by the monolithic step); "direct" factorises."""
     for method, strain in runs:
-        _, step = coupled(runs[(method, strain)])
+        r = runs[(method, strain)]
+        _, step = coupled(r)
         report = step.reports[-1]
         assert report.converged
         assert (report.krylov_iterations > 0) is (method == "multigrid")
+        if method == "multigrid":
+            ((_, solver),) = step.solvers.values()
+            assert isinstance(solver.krylov, JointKrylovSystem)
+            assert r.shell is not None and solver.krylov.shell is r.shell.solver.krylov
 
 
 def test_cg_path_equals_the_direct_path_stretched(runs):

@@ -348,3 +348,18 @@ def test_resumed_two_way_run_equals_the_straight_run(default_runs, tmp_path):
     assert resumed["energy"] == pytest.approx(straight["energy"], rel=1e-12)
     assert resumed["details"]["shell_energy"] == pytest.approx(
         straight["details"]["shell_energy"], rel=1e-12)
+
+
+@pytest.mark.parametrize(("scene", "extra", "expected"), [
+    ("default", [], True), ("two_way_bar", [], False),
+    ("two_way_bar", ["--set", 'shell.solver.options.coupling.scheme="implicit"'], True)])
+def test_the_monolithic_step_runs_its_shell_multigrid_without_the_phase_space(scene, extra,
+                                                                               expected):
+    """At 3 levels (10 434 shell vertices, where a one-way shell's multigrid takes the
+    wrinkle-phase space) the monolithic two-way scene resolves the phase space off: its joint
+    CG does not use it, so the shell solver's multigrid, built without it, serves as the
+    joint CG's shell block; the fixed point solves the shell one-way and keeps it."""
+    proc = wrinkles("check", str(REPO / "scenes" / f"{scene}.toml"), "--set",
+                    "shell.subdivision.levels=3", *extra)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["resolved"]["shell"]["solver"]["phase_space"] is expected

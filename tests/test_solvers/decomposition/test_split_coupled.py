@@ -36,6 +36,7 @@ def test_split_joint_system_equals_the_serial_one(mpiexec, ranks) -> None:
     out = _result(mpiexec([SCRIPT], n=ranks, timeout=300))
     print(out)
     assert out["joint_system"] == "split" and out["vertices"] >= SPLIT_JOINT_FROM_VERTICES
+    assert out["shared_multigrid"]  # the split shell solver's multigrid is the shell block
     assert out["factorized"]
     for key in ("value_rel", "grad_rel", "diagonal_rel", "product_rel", "dot_rel"):
         assert out[key] < 1e-13, key

@@ -41,7 +41,7 @@ import scipy.sparse as sp
 from meshes.errors import InputError
 from solvers.linear import FactorReport, LinearSolverOptions, SparseDirectSolver
 from solvers.monolithic import PatternSum
-from solvers.multigrid import KrylovBase, MultigridLinearSystem
+from solvers.multigrid import KrylovBase, MultigridLinearSystem, shifted_product
 
 BODY_LINEAR = LinearSolverOptions(symmetric="ldlt", mumps_blr=False)
 """Factorisation of the body block: LDL^T, whose inertia says whether it is SPD."""
@@ -49,7 +49,11 @@ BODY_LINEAR = LinearSolverOptions(symmetric="ldlt", mumps_blr=False)
 
 @dataclass(frozen=True)
 class ShellBlock:
-    """The shell's part of a joint evaluation, as the shell multigrid reads it."""
+    """The shell's part of a joint evaluation, as the shell multigrid reads it.
+
+    ``hess``: ``K_x`` (CSR) for the serial multigrid, a rank's rows of it
+    (:class:`solvers.decomposition.split_newton.OwnedRows`) for the split one.
+    """
 
     hess: Any
     penalty_factor: sp.csr_matrix | None
@@ -114,6 +118,7 @@ class JointCG(KrylovBase):
         super().__init__(shell.options)
         self.shell = shell
         self.body = BodyBlock(body_factor)
+        self._ev: Any = None  # the set-up's joint evaluation
         self._tau: float | None = None
 
     def factorize(self, ev: Any, tau: float) -> FactorReport:
@@ -132,7 +137,7 @@ class JointCG(KrylovBase):
         if not body.usable_spd:
             return self._setup_done(start, replace(
                 body, success=False, reason="body block not positive definite"))
-        self._k_u, self._tau = k_u, float(tau)
+        self._ev, self._tau = ev, float(tau)
         return self._setup_done(start, FactorReport(success=True, shift=float(tau)))
 
     def _shell_setup(self, k_x: Any, tau: float) -> FactorReport:
@@ -238,24 +243,18 @@ class JointKrylovSystem(JointCG):
         super().__init__(shell, body_factor)
         self.n = shell.n
         self.shell_factor = shell_factor
-        self.factor = (None if shell_factor is None or body_factor is None
-                       else sp.hstack([shell_factor, body_factor], format="csr"))
 
     def _shell_setup(self, k_x: Any, tau: float) -> FactorReport:
         """Set the shell multigrid up for ``K_x + G^T G + tau I``."""
         if k_x.shape[0] != self.n:
             raise InputError(f"JointKrylovSystem: shell block of {k_x.shape[0]} dofs, the "
                              f"multigrid has {self.n}")
-        self._k_x = k_x
         return self.shell.factorize(ShellBlock(k_x, self.shell_factor), tau)
 
     def apply(self, v: np.ndarray) -> np.ndarray:
         """Return ``M v`` of the current system."""
         assert self._tau is not None  # factorize() succeeded first (internal invariant)
-        out = np.concatenate([self._k_x @ v[:self.n], self._k_u @ v[self.n:]]) + self._tau * v
-        if self.factor is not None:
-            out += self.factor.T @ (self.factor @ v)
-        return out
+        return shifted_product(self._ev, self._tau, v)
 
     def precondition(self, r: np.ndarray) -> np.ndarray:
         """Return ``S r``: a shell V-cycle on the shell rows, the body block solved exactly."""

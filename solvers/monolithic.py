@@ -185,6 +185,7 @@ class CoupledEnergy:
         body: the body's step problem on every rank.
 
     Attributes:
+        embedding_free: ``B (x) I_3`` (3n x 3 n_b) with the pinned body columns zero.
         factor: ``F = [G, -G B]`` (pinned body columns zero), None without the factor G.
         body_factor: ``F``'s body columns ``-G B`` (the joint CG's body block), or None.
 
@@ -201,6 +202,7 @@ class CoupledEnergy:
         free = np.ones(3 * self.n_b)
         free[body.fixed] = 0.0
         Bk_free = (Bk @ sp.diags(free)).tocsr()
+        self.embedding_free = Bk_free
         self.factor = self._coupled_factor(Bk_free)
         self.body_factor = None if self.factor is None else self.factor[:, 3 * self.n:].tocsr()
         self.constant = self._coupling_blocks(Bk_free) if self.factor is None else None

@@ -38,7 +38,7 @@ from meshes.errors import InputError
 from models.backend import MPI
 from solvers.decomposition.split_multigrid import SplitMultigridSystem
 from solvers.decomposition.split_newton import OwnedRows, SplitNewtonSolver, SplitShellEnergy
-from solvers.joint_krylov import JointCG
+from solvers.joint_krylov import JointCG, ShellBlock
 from solvers.linear import FactorReport
 from solvers.monolithic import CoupledEnergy, CoupledEval
 from solvers.multigrid import MultigridOptions
@@ -121,23 +121,16 @@ class SplitJointKrylov(JointCG):
         self.owned = shell.levels[-1].owned
         self.m = int(self.owned.size)
         self.n = 3 * joint.n
-        self.b_rows = self._embedding_rows(joint)
+        self.b_rows = sp.csr_matrix(joint.embedding_free[self.owned])
         self.b_rows_t = sp.csr_matrix(self.b_rows.T)
         a = shell.fine_matrix
         self._vecs = (a.createVecs()[1], a.createVecs()[1], a.createVecs()[1])
         g = shell.fine_penalty
         self._g_vec = None if g is None else g.createVecs()[1]
 
-    def _embedding_rows(self, joint: CoupledEnergy) -> sp.csr_matrix:
-        """Return this rank's rows of ``B (x) I_3``, the pinned body columns zero."""
-        bk = sp.kron(joint.B, sp.identity(3), format="csr")
-        free = np.ones(bk.shape[1])
-        free[joint.body.fixed] = 0.0
-        return sp.csr_matrix((bk @ sp.diags(free)).tocsr()[self.owned])
-
     def _shell_setup(self, k_x: Any, tau: float) -> FactorReport:
         """Set the distributed shell multigrid up for ``K_x + G^T G + tau I``."""
-        return self.shell.factorize(_Rows(k_x), tau)
+        return self.shell.factorize(ShellBlock(k_x, None), tau)
 
     def _penalty(self, d: np.ndarray) -> np.ndarray:
         """``s = G^T G d`` on this rank's rows (collective)."""
@@ -161,7 +154,7 @@ class SplitJointKrylov(JointCG):
         shell = out.getArray(readonly=True) + s
         b_s = np.empty(p_u.size)
         self.comm.Allreduce(np.ascontiguousarray(self.b_rows_t @ s), b_s, op=MPI.SUM)
-        body = self._k_u @ p_u + self._tau * p_u - b_s
+        body = self._ev.blocks[1] @ p_u + self._tau * p_u - b_s
         return np.concatenate([shell, body])
 
     def precondition(self, r: np.ndarray) -> np.ndarray:
@@ -198,13 +191,6 @@ def split_joint_system(split: SplitNewtonSolver, joint: CoupledEnergy,
              SplitMultigridSystem(split.energy, prolongations, joint.shell.penalty_factor,
                                   split.layout.cluster_rank, replace(options, phase_space=False)))
     return energy, SplitJointKrylov(shell, energy)
-
-
-@dataclass(frozen=True, eq=False)
-class _Rows:
-    """A shell-block evaluation as the distributed multigrid reads it (``hess.matrix``)."""
-
-    hess: OwnedRows
 
 
 __all__ = ["JointRows", "SplitCoupledEnergy", "SplitJointKrylov", "split_joint_system"]

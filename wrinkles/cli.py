@@ -180,8 +180,7 @@ def command_check(args: argparse.Namespace) -> int:
         resolved["shell"] = shell_report(scene.shell, scene.material, surface.vertices,
                                          surface.faces, static=scene.body.dynamics == "static")
         resolved["shell"]["layout_on_2_ranks"] = layout_for(scene, 2, lambda: scene_sizes(scene))
-        shell = scene.shell
-        if shell.coupling.mode == "two_way" and shell.internals.coupling.scheme == "monolithic":
+        if scene.shell.monolithic_two_way:
             split = choose_joint_split(2, resolved["shell"]["vertices"],
                                        resolved["shell"]["solver"]["method"])
             resolved["shell"]["joint_system_on_2_ranks"] = "split" if split else "whole"

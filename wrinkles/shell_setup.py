@@ -325,6 +325,11 @@ class ShellOptions:
             ShellInternals, self.solver.options, "shell.solver.options",
             named=self.named_keys(), defaults=SCENE_DEFAULTS))
 
+    @property
+    def monolithic_two_way(self) -> bool:
+        """Whether the shell is two-way coupled by the joint Newton solve (the default scheme)."""
+        return self.coupling.mode == "two_way" and self.internals.coupling.scheme == "monolithic"
+
     def named_keys(self) -> dict[str, Any]:
         """Return the internal values the named keys set (dotted paths of ShellInternals)."""
         solver = self.solver
@@ -359,9 +364,7 @@ def resolve_solver(options: ShellOptions, vertices: int, ranks: int, *,
     shell's, so every rank count chooses alike.
     """
     by_load = {**choose_shift_schedule(static), **choose_factor_reuse(static)}
-    joint = options.coupling.mode == "two_way" and options.internals.coupling.scheme == \
-        "monolithic"  # the joint CG's shell block runs without the phase space
-    chosen = {PHASE_SPACE_KEY: choose_phase_space(vertices) and not joint,
+    chosen = {PHASE_SPACE_KEY: choose_phase_space(vertices) and not options.monolithic_two_way,
               **{f"newton.{key}": value for key, value in by_load.items()}}
     expert_keys = {**{key: value for key, value in chosen.items()
                       if key not in options.solver.options}, **options.solver.options}
@@ -673,8 +676,7 @@ def build_shell(body: Body, options: ShellOptions, material: Material,
     solver = shell_solver(energy, options.internals.newton, hierarchy, clusters, body.mesh.comm)
     ranks = body.mesh.comm.size
     split = f" split over {ranks} ranks" if ranks > 1 else ""
-    if ranks > 1 and options.coupling.mode == "two_way" \
-            and options.internals.coupling.scheme == "monolithic":
+    if ranks > 1 and options.monolithic_two_way:
         joint = choose_joint_split(ranks, int(rest.shape[0]),
                                    options.internals.newton.linear_method)
         split += ("; the two-way joint system split as well" if joint else

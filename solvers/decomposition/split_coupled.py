@@ -125,8 +125,8 @@ class SplitJointKrylov(JointCG):
         self.b_rows_t = sp.csr_matrix(self.b_rows.T)
         a = shell.fine_matrix
         self._vecs = (a.createVecs()[1], a.createVecs()[1], a.createVecs()[1])
-        g = shell.fine_penalty
-        self._g_vec = None if g is None else g.createVecs()[1]
+        self._g = shell.fine_penalty  # G exists: SplitCoupledEnergy refuses a shell without it
+        self._g_vec = self._g.createVecs()[1]
 
     def _shell_setup(self, k_x: Any, tau: float) -> FactorReport:
         """Set the distributed shell multigrid up for ``K_x + G^T G + tau I``."""
@@ -134,13 +134,10 @@ class SplitJointKrylov(JointCG):
 
     def _penalty(self, d: np.ndarray) -> np.ndarray:
         """``s = G^T G d`` on this rank's rows (collective)."""
-        g = self.shell.fine_penalty
-        if g is None:
-            return np.zeros_like(d)
         v, s, _ = self._vecs
         v.setArray(d)
-        g.mult(v, self._g_vec)
-        g.multTranspose(self._g_vec, s)
+        self._g.mult(v, self._g_vec)
+        self._g.multTranspose(self._g_vec, s)
         return s.getArray(readonly=True).copy()
 
     def apply(self, v: np.ndarray) -> np.ndarray:

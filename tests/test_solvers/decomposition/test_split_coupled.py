@@ -56,12 +56,9 @@ def stretched_bar(tmp_path: Path, frames: int = 1) -> Path:
 
 @pytest.fixture(scope="module")
 def serial_bar(tmp_path_factory) -> Path:
-    import subprocess
-    import sys
     tmp = tmp_path_factory.mktemp("serial")
     out = tmp / "out"
-    proc = subprocess.run([sys.executable, "-m", "wrinkles", "run", str(stretched_bar(tmp)),
-                           "--out", str(out)], capture_output=True, text=True, timeout=300)
+    proc = wrinkles("run", str(stretched_bar(tmp)), "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     return out
 

@@ -14,15 +14,16 @@ with the block-diagonal (block-Jacobi) preconditioner
 
 ``V_x`` one V-cycle of the shell's geometric multigrid for ``K_x + G^T G + tau I``
 (:class:`solvers.multigrid.MultigridLinearSystem`, symmetric: Chebyshev/Jacobi smoothing, the
-coarsest level factorised) and ``M_uu`` factorised exactly (MUMPS LDL^T, its pattern fixed,
-the analysis reused); ``S`` is symmetric positive definite when both diagonal blocks are, so
-the iteration is a preconditioned CG. A coarse correction on the span of ``[B; I]`` (shell and
+coarsest level factorised) and ``M_uu`` factorised (MUMPS LDL^T, its pattern fixed, the
+analysis reused; the factor kept while the block barely moves: :class:`BodyBlock`); ``S`` is
+symmetric positive definite when both diagonal blocks are, so the iteration is a
+preconditioned CG. A coarse correction on the span of ``[B; I]`` (shell and
 body moving together, where ``F`` vanishes) was measured and does not pay
 (docs/notes/two-way-coupling.md).
 
 Indefiniteness, as the shell Newton expects from a linear solver (``usable_spd``): a
-diagonal block that is not positive definite (``M_uu`` has a negative pivot) fails the
-set-up; a CG curvature ``p^T M p <= 0`` or a non-positive ``r^T S r`` fails the solve (the
+diagonal block found not positive definite (a new ``M_uu`` factor has a negative pivot)
+fails the set-up; a CG curvature ``p^T M p <= 0`` or a non-positive ``r^T S r`` fails the solve (the
 shell Newton then moves on to the next shift). The CG tolerance is the shell's forcing term
 (:class:`solvers.multigrid.KrylovBase`), and a solution is accepted when its true residual is
 within ``residual_slack`` of it.
@@ -46,6 +47,12 @@ from solvers.multigrid import KrylovBase, MultigridLinearSystem, shifted_product
 BODY_LINEAR = LinearSolverOptions(symmetric="ldlt", mumps_blr=False)
 """Factorisation of the body block: LDL^T, whose inertia says whether it is SPD."""
 
+BODY_MAX_AGE = 8
+"""Set-ups a body-block factor may serve after its own (docs/notes/two-way-coupling.md)."""
+
+BODY_SHIFT_TOLERANCE = 0.25
+"""Shift change, relative to the body block's mean diagonal, that keeps its factor."""
+
 
 @dataclass(frozen=True)
 class ShellBlock:
@@ -60,24 +67,50 @@ class ShellBlock:
 
 
 class BodyBlock:
-    """``M_uu = K_u + F_u^T F_u + tau I`` factorised exactly (MUMPS LDL^T, serial).
+    """``M_uu = K_u + F_u^T F_u + tau I`` factorised (MUMPS LDL^T, serial), reused while close.
 
     The pattern is fixed at the first call (a zero diagonal for the shift and ``F_u^T F_u``
-    joined to ``K_u``'s), so MUMPS' analysis runs once.
+    joined to ``K_u``'s), so MUMPS' analysis runs once. The factor is only the body block of
+    the joint CG's preconditioner, so an earlier one serves while the block has barely
+    changed (the CG stays exact on ``M``; only its iterations may grow): a new one is
+    computed when none is valid (the first call, a failed CG: :meth:`invalidate`), after
+    ``max_age`` reuses, or when the shift moved by more than ``shift_tolerance`` times the
+    mean ``|diag(K_u + F_u^T F_u)|`` of the factorised block. A reused factor certifies
+    nothing: the joint CG's curvature test ``p^T M p <= 0`` and the shell Newton's descent
+    test then stand for the body block's inertia, as they do for the shell block's
+    (docs/notes/two-way-coupling.md, "A body of thousands of dofs").
 
     Args:
         body_factor: ``F_u = -G B`` (pinned columns zero), or None without penalty.
+        max_age: Set-ups a factor may serve after its own (0: factorise every set-up).
+        shift_tolerance: Largest shift change, relative to the block's mean diagonal, that
+            keeps a factor.
 
     """
 
-    def __init__(self, body_factor: sp.csr_matrix | None) -> None:
+    def __init__(self, body_factor: sp.csr_matrix | None, max_age: int = BODY_MAX_AGE,
+                 shift_tolerance: float = BODY_SHIFT_TOLERANCE) -> None:
         self._penalty = None if body_factor is None else (body_factor.T @ body_factor).tocsr()
         self._sum: PatternSum | None = None
         self._constant: list[sp.csr_matrix] | None = None
         self._solver: SparseDirectSolver | None = None
+        self.max_age, self.shift_tolerance = max_age, shift_tolerance
+        self._factored: tuple[float, float] | None = None  # (tau, mean |diag|) of the factor
+        self._age = 0
+        self.factorizations = 0
+        self.reuses = 0
 
     def factorize(self, k_u: sp.csr_matrix, tau: float) -> FactorReport:
-        """Factorise ``M_uu`` for ``K_u`` and ``tau``; ``usable_spd`` says whether it is SPD."""
+        """Factorise ``M_uu`` for ``K_u`` and ``tau``, or keep the valid factor if close.
+
+        ``usable_spd`` says whether the new factor is SPD; a kept one reports success.
+        """
+        if self._factored is not None and self._age < self.max_age:
+            factored_tau, scale = self._factored
+            if abs(tau - factored_tau) <= self.shift_tolerance * scale:
+                self._age += 1
+                self.reuses += 1
+                return FactorReport(success=True, reason="reused", shift=float(tau))
         n = k_u.shape[0]
         if self._constant is None:
             diagonal = sp.csr_matrix((np.zeros(n), np.arange(n), np.arange(n + 1)), shape=(n, n))
@@ -88,7 +121,16 @@ class BodyBlock:
         m_uu = self._sum(pieces)
         if self._solver is None:
             self._solver = SparseDirectSolver(m_uu, BODY_LINEAR)
-        return self._solver.factorize(m_uu, tau)
+        self.factorizations += 1
+        report = self._solver.factorize(m_uu, tau)
+        self._age = 0
+        self._factored = ((float(tau), float(np.mean(np.abs(m_uu.diagonal()))))
+                          if report.usable_spd else None)
+        return report
+
+    def invalidate(self) -> None:
+        """Make the next :meth:`factorize` compute a new factor (after a failed CG)."""
+        self._factored = None
 
     def solve(self, r: np.ndarray) -> np.ndarray:
         """Return ``M_uu^{-1} r`` with the last factorisation."""
@@ -169,6 +211,7 @@ class JointCG(KrylovBase):
         self.stats.iterations.append(its)
         residual = self._residual(x, b) if converged else np.inf
         if residual > self.options.residual_slack * self.eta:
+            self.body.invalidate()  # the retry (or the next shift) factorises anew
             return None
         self.stats.true_residuals.append(residual)
         return self._full(x)

@@ -20,7 +20,7 @@ import scipy.sparse.linalg as spla
 from support import LENGTH, SKIN, bar_scene, dumps
 
 from models.backend import MPI
-from solvers.joint_krylov import JointKrylovSystem
+from solvers.joint_krylov import BodyBlock, JointKrylovSystem
 from solvers.monolithic import CoupledEnergy
 from solvers.multigrid import MultigridLinearSystem, MultigridOptions
 from wrinkles.runner import Run, prepare, run_frames
@@ -109,6 +109,57 @@ def test_body_block_not_spd_fails_the_set_up(runs):
     bad = dataclasses.replace(ev, blocks=(k_x, -sp.identity(k_u.shape[0], format="csr")))
     report = system.factorize(bad, 0.0)
     assert not report.usable_spd and "body block" in report.reason
+
+
+def laplacian_3d(n: int) -> sp.csr_matrix:
+    """The SPD 1D Laplacian of ``n`` nodes (Dirichlet ends) times I_3: spectrum in (0, 12)."""
+    lap = sp.diags([-np.ones(n - 1), 2.0 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1])
+    return sp.kron(lap, sp.identity(3)).tocsr()
+
+
+def test_body_block_keeps_its_factor_while_close():
+    """The body block's factor is kept for a shift within ``shift_tolerance`` x its mean
+    diagonal (2.6 here: 0.5 apart is kept, 1.0 apart refactorises), up to ``max_age`` reuses,
+    and never after :meth:`invalidate` or a failed (indefinite) factorisation; a kept factor
+    solves with the factorised matrix, a new one with the new matrix."""
+    k_u = laplacian_3d(20)
+    factor = sp.random(6, k_u.shape[0], density=0.3, random_state=1, format="csr")
+    block = BodyBlock(factor, max_age=2, shift_tolerance=0.3)
+    m = (k_u + factor.T @ factor).tocsc()
+    eye = sp.identity(k_u.shape[0], format="csc")
+    b = np.random.default_rng(0).standard_normal(k_u.shape[0])
+    assert block.factorize(k_u, 0.0).usable_spd
+    scale = float(np.mean(m.diagonal()))
+    assert 1.7 < scale < 3.3  # 0.3 x scale in (0.5, 1.0)
+    assert block.factorize(k_u, 0.5).reason == "reused"  # 0.5 <= 0.3 x scale
+    np.testing.assert_allclose(block.solve(b), spla.spsolve(m, b), rtol=1e-10)
+    assert block.factorize(k_u, 1.0).reason != "reused"  # 1.0 > 0.3 x scale: refactorised
+    np.testing.assert_allclose(block.solve(b), spla.spsolve(m + eye, b), rtol=1e-10)
+    assert [block.factorize(k_u, 1.0).reason for _ in range(3)] == ["reused", "reused", "ok"]
+    block.invalidate()
+    assert block.factorize(k_u, 1.0).reason != "reused"
+    assert (block.factorizations, block.reuses) == (4, 3)
+    assert not block.factorize(-k_u, 0.0).usable_spd  # indefinite: never kept
+    assert block.factorize(-k_u, 0.0).reason != "reused"
+    assert block.factorizations == 6
+
+
+def test_cg_with_a_kept_body_factor_solves_the_new_system(runs):
+    """A set-up whose shift moved within the tolerance keeps the body block's factor; the CG
+    still solves the new joint matrix (the preconditioner is stale, the product exact): the
+    direct solution of ``M + tau I`` to 1e-8 for rtol 1e-10."""
+    system, energy, z = joint_system(runs[("direct", -0.04)], 1e-10)
+    ev = energy.evaluate(z, order=2)
+    assert system.factorize(ev, 0.0).usable_spd
+    tau = 0.1 * float(np.mean(np.abs(ev.blocks[1].diagonal())))
+    assert system.factorize(ev, tau).usable_spd
+    assert (system.body.factorizations, system.body.reuses) == (1, 1)
+    b = -ev.grad
+    x = system.solve(b)
+    exact = spla.spsolve(joint_matrix(ev, tau), b)
+    error = np.linalg.norm(x - exact) / np.linalg.norm(exact)
+    print("CG iterations", system.stats.iterations, "relative error", error)
+    assert error <= 1e-8
 
 
 def test_product_path_uses_the_joint_cg(runs):

@@ -61,13 +61,13 @@ import resource
 import shutil
 import statistics
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 from wrinkles.config import read_toml
+from wrinkles.launch import python_on_ranks
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "product_frames.json"
@@ -99,17 +99,10 @@ def drop_worktree(path: Path) -> None:
                    check=False, capture_output=True)
 
 
-def mpiexec() -> str:
-    """The ``mpiexec`` next to this interpreter (the venv's), else the one on ``PATH``."""
-    beside = Path(sys.executable).with_name("mpiexec")
-    return str(beside) if beside.exists() else (shutil.which("mpiexec") or "mpiexec")
-
-
 def run_cli(code: Path, scene: Path, out: Path, frames: int | None,
             overrides: list[str], timeout: float, ranks: int = 1) -> dict[str, Any]:
     """Run the CLI of the tree ``code`` on ``scene`` (on ``ranks`` MPI ranks); its row."""
-    launch = [mpiexec(), "-n", str(ranks)] if ranks > 1 else []
-    cmd = [*launch, sys.executable, "-m", "wrinkles", "run", str(scene), "--out", str(out),
+    cmd = [*python_on_ranks(ranks), "-m", "wrinkles", "run", str(scene), "--out", str(out),
            "--overwrite", "--set", "output.render=false"]
     cmd += ["--frames", str(frames)] if frames else []
     for item in overrides:

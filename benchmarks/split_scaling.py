@@ -41,12 +41,13 @@ import json
 import math
 import os
 import subprocess
-import sys
 import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from wrinkles.launch import python_on_ranks
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "split_scaling.json"
@@ -124,12 +125,10 @@ def run_worker(script: str, levels: int, ranks: int, timeout: float,
     The worker writes ``DIR/record.json`` on rank 0. ``petsc_options`` are added to
     ``PETSC_OPTIONS`` (``{out}`` in them names the run's temporary directory).
     """
-    mpiexec = Path(sys.executable).with_name("mpiexec")
     name = Path(script).stem
     with tempfile.TemporaryDirectory(prefix=f"{name}_") as tmp:
-        cmd = [sys.executable, script, "--worker", "--levels", str(levels), "--out", tmp]
-        if ranks > 1:
-            cmd = [str(mpiexec), "-n", str(ranks), *cmd]
+        cmd = [*python_on_ranks(ranks), script, "--worker", "--levels", str(levels),
+               "--out", tmp]
         # one BLAS thread per process, as the CLI has (wrinkles/__init__.py): this script
         # loads numpy before the package could cap it
         env = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", **os.environ}

@@ -56,6 +56,8 @@ class Step:
     def command(self, build: Path) -> list[str]:
         """Return the command line with ``{py}``, ``{mpiexec}`` and ``{build}`` filled in."""
         values = {"py": sys.executable, "build": str(build),
+                  # wrinkles.launch.mpiexec_path, not imported: importing the package caps
+                  # the BLAS threads of every step started from here (wrinkles/__init__.py)
                   "mpiexec": str(Path(sys.executable).with_name("mpiexec"))}
         return [a.format(**values) for a in self.argv]
 

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from wrinkles.launch import mpiexec_path
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -21,10 +22,7 @@ def rng() -> np.random.Generator:
 
 
 def _mpiexec_path() -> str:
-    candidate = Path(sys.executable).with_name("mpiexec")
-    if candidate.exists():
-        return str(candidate)
-    found = shutil.which("mpiexec")
+    found = mpiexec_path()
     if found is None:
         pytest.skip("mpiexec not found next to the interpreter or on PATH")
     return found

@@ -11,9 +11,10 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
+
+from wrinkles.launch import python_on_ranks
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -28,9 +29,7 @@ def frames_done(out: Path) -> int:
 
 def launcher(ranks: int) -> list[str]:
     """Command prefix running Python on ``ranks`` MPI ranks (plain Python for 1)."""
-    if ranks == 1:
-        return [sys.executable]
-    return [str(Path(sys.executable).with_name("mpiexec")), "-n", str(ranks), sys.executable]
+    return python_on_ranks(ranks)
 
 
 def kill_after_frames(cli_args: list[str], out: Path, after: int, delay: float,

@@ -22,13 +22,14 @@ import json
 import os
 import shutil
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from common import figure_path, parse_args, write_json
+
+from wrinkles.launch import python_on_ranks
 
 SCENE = "ball_sofa_coarse"
 FRAMES = ("--frames", "10")
@@ -58,7 +59,7 @@ def two_ranks(out: Path, quick: bool, serial: Path) -> dict[str, Any]:
         shutil.rmtree(out)
     repo = Path(__file__).resolve().parents[2]
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-    cmd = [str(Path(sys.executable).with_name("mpiexec")), "-n", "2", sys.executable, "-m",
+    cmd = [*python_on_ranks(2), "-m",
            "wrinkles", "run", str(repo / "scenes" / f"{SCENE}.toml"), "--out", str(out),
            *FRAMES, *(QUICK if quick else ()), "--set", "output.render=false"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=7200, cwd=repo, env=env)

@@ -23,10 +23,10 @@ body moving together, where ``F`` vanishes) was measured and does not pay
 
 Indefiniteness, as the shell Newton expects from a linear solver (``usable_spd``): a
 diagonal block found not positive definite (a new ``M_uu`` factor has a negative pivot)
-fails the set-up; a CG curvature ``p^T M p <= 0`` or a non-positive ``r^T S r`` fails the solve (the
-shell Newton then moves on to the next shift). The CG tolerance is the shell's forcing term
-(:class:`solvers.multigrid.KrylovBase`), and a solution is accepted when its true residual is
-within ``residual_slack`` of it.
+fails the set-up; a CG curvature ``p^T M p <= 0`` or a non-positive ``r^T S r`` fails the
+solve (the shell Newton then moves on to the next shift). The CG tolerance is the shell's
+forcing term (:class:`solvers.multigrid.KrylovBase`), and a solution is accepted when its true
+residual is within ``residual_slack`` of it.
 """
 
 from __future__ import annotations

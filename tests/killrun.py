@@ -27,11 +27,6 @@ def frames_done(out: Path) -> int:
         return 0
 
 
-def launcher(ranks: int) -> list[str]:
-    """Command prefix running Python on ``ranks`` MPI ranks (plain Python for 1)."""
-    return python_on_ranks(ranks)
-
-
 def kill_after_frames(cli_args: list[str], out: Path, after: int, delay: float,
                       timeout: float = 180.0, ranks: int = 1) -> int:
     """Run ``python -m wrinkles CLI_ARGS``, SIGKILL it ``delay`` s after ``after`` frames are done.
@@ -48,8 +43,8 @@ def kill_after_frames(cli_args: list[str], out: Path, after: int, delay: float,
         The number of frames completed on disk when the process died.
     """
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-    proc = subprocess.Popen([*launcher(ranks), "-m", "wrinkles", *cli_args], cwd=REPO, env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    proc = subprocess.Popen([*python_on_ranks(ranks), "-m", "wrinkles", *cli_args], cwd=REPO,
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=ranks > 1)
     deadline = time.monotonic() + timeout
     while frames_done(out) < after and proc.poll() is None and time.monotonic() < deadline:

@@ -67,18 +67,29 @@ class ShellBlock:
 
 
 class BodyBlock:
-    """``M_uu = K_u + F_u^T F_u + tau I`` factorised (MUMPS LDL^T, serial), reused while close.
+    """``M_uu = K_u + F_u^T F_u + tau I`` factorised by MUMPS LDL^T, augmented on a large body.
 
-    The pattern is fixed at the first call (a zero diagonal for the shift and ``F_u^T F_u``
-    joined to ``K_u``'s), so MUMPS' analysis runs once. The factor is only the body block of
-    the joint CG's preconditioner, so an earlier one serves while the block has barely
-    changed (the CG stays exact on ``M``; only its iterations may grow): a new one is
-    computed when none is valid (the first call, a failed CG: :meth:`invalidate`), after
-    ``max_age`` reuses, or when the shift moved by more than ``shift_tolerance`` times the
-    mean ``|diag(K_u + F_u^T F_u)|`` of the factorised block. A reused factor certifies
-    nothing: the joint CG's curvature test ``p^T M p <= 0`` and the shell Newton's descent
-    test then stand for the body block's inertia, as they do for the shell block's
-    (docs/notes/two-way-coupling.md, "A body of thousands of dofs").
+    ``M_uu``'s penalty term couples every body node under a cluster, which fills its factor.
+    A body with more dofs ``n`` than ``F_u`` has rows ``m`` is factorised instead as the
+    augmented matrix
+
+        [[K_u + tau I, F_u^T], [F_u, -I]],
+
+    whose Schur complement onto the first block is ``M_uu`` (``M_uu^{-1} r`` is the first
+    block of its solution for ``(r, 0)``): half the factor's time on a 5 469-dof body with
+    ``m = 1 260``, slower where ``m > n`` (the shipped scenes' small bodies), which keep
+    ``M_uu`` assembled (:attr:`augmented`). The augmented form's ``m`` negative pivots are
+    expected; one more means ``M_uu`` is not positive definite. The pattern is fixed at the
+    first call, so MUMPS' analysis runs once.
+
+    The factor is only the body block of the joint CG's preconditioner, so an earlier one
+    serves while the block has barely changed (the CG stays exact on ``M``; only its
+    iterations may grow): a new one is computed when none is valid (the first call, a failed
+    CG: :meth:`invalidate`), after ``max_age`` reuses, or when the shift moved by more than
+    ``shift_tolerance`` times the mean ``|diag(K_u + F_u^T F_u)|`` of the factorised block. A
+    reused factor certifies nothing: the joint CG's curvature test ``p^T M p <= 0`` and the
+    shell Newton's descent test then stand for the body block's inertia, as they do for the
+    shell block's (docs/notes/two-way-coupling.md, "A body of thousands of dofs").
 
     Args:
         body_factor: ``F_u = -G B`` (pinned columns zero), or None without penalty.
@@ -90,10 +101,16 @@ class BodyBlock:
 
     def __init__(self, body_factor: sp.csr_matrix | None, max_age: int = BODY_MAX_AGE,
                  shift_tolerance: float = BODY_SHIFT_TOLERANCE) -> None:
-        self._penalty = None if body_factor is None else (body_factor.T @ body_factor).tocsr()
+        self._factor = None if body_factor is None else sp.csr_matrix(body_factor)
+        self.augmented = self._factor is not None and \
+            self._factor.shape[0] < self._factor.shape[1]
+        self._penalty_diagonal = (0.0 if self._factor is None else
+                                  np.asarray(self._factor.multiply(self._factor).sum(axis=0))
+                                  .ravel())
         self._sum: PatternSum | None = None
-        self._constant: list[sp.csr_matrix] | None = None
+        self._constant: list[tuple[sp.csr_matrix, int, int]] | None = None
         self._solver: SparseDirectSolver | None = None
+        self.n = 0
         self.max_age, self.shift_tolerance = max_age, shift_tolerance
         self._factored: tuple[float, float] | None = None  # (tau, mean |diag|) of the factor
         self._age = 0
@@ -111,21 +128,28 @@ class BodyBlock:
                 self._age += 1
                 self.reuses += 1
                 return FactorReport(success=True, reason="reused", shift=float(tau))
-        n = k_u.shape[0]
-        if self._constant is None:
-            diagonal = sp.csr_matrix((np.zeros(n), np.arange(n), np.arange(n + 1)), shape=(n, n))
-            self._constant = [diagonal] + ([self._penalty] if self._penalty is not None else [])
-        pieces = [sp.csr_matrix(k_u), *self._constant]
-        if self._sum is None:
-            self._sum = PatternSum((n, n), [(m, 0, 0) for m in pieces])
-        m_uu = self._sum(pieces)
+        k_u = sp.csr_matrix(k_u)
+        self.n = n = k_u.shape[0]
+        m = self._factor.shape[0] if self._factor is not None and self.augmented else 0
+        if self._constant is None:  # the identity (for tau), then [[., F^T], [F, -I]] or P
+            self._constant = [(sp.identity(n, format="csr"), 0, 0)]
+            if self.augmented:
+                assert self._factor is not None  # augmented only with a factor (invariant)
+                self._constant += [(self._factor.T.tocsr(), 0, n), (self._factor, n, 0),
+                                   (-sp.identity(m, format="csr"), n, n)]
+            elif self._factor is not None:
+                self._constant += [((self._factor.T @ self._factor).tocsr(), 0, 0)]
+            self._sum = PatternSum((n + m, n + m), [(k_u, 0, 0), *self._constant])
+        assert self._sum is not None  # built with the constant pieces (internal invariant)
+        eye, *rest = (piece for piece, _, _ in self._constant)
+        augmented = self._sum([k_u, float(tau) * eye, *rest])
         if self._solver is None:
-            self._solver = SparseDirectSolver(m_uu, BODY_LINEAR)
+            self._solver = SparseDirectSolver(augmented, BODY_LINEAR, expected_negative=m)
         self.factorizations += 1
-        report = self._solver.factorize(m_uu, tau)
+        report = replace(self._solver.factorize(augmented), shift=float(tau))
         self._age = 0
-        self._factored = ((float(tau), float(np.mean(np.abs(m_uu.diagonal()))))
-                          if report.usable_spd else None)
+        scale = float(np.mean(np.abs(k_u.diagonal() + self._penalty_diagonal)))
+        self._factored = (float(tau), scale) if report.usable_spd else None
         return report
 
     def invalidate(self) -> None:
@@ -133,9 +157,13 @@ class BodyBlock:
         self._factored = None
 
     def solve(self, r: np.ndarray) -> np.ndarray:
-        """Return ``M_uu^{-1} r`` with the last factorisation."""
+        """Return ``M_uu^{-1} r`` (augmented: the first block of the solve for ``(r, 0)``)."""
         assert self._solver is not None  # factorize() ran first (internal invariant)
-        return self._solver.solve(r)
+        if not self.augmented:
+            return self._solver.solve(r)
+        rhs = np.zeros(self._solver.n)
+        rhs[:self.n] = r
+        return self._solver.solve(rhs)[:self.n]
 
 
 class JointCG(KrylovBase):

@@ -117,14 +117,19 @@ def laplacian_3d(n: int) -> sp.csr_matrix:
     return sp.kron(lap, sp.identity(3)).tocsr()
 
 
-def test_body_block_keeps_its_factor_while_close():
+@pytest.mark.parametrize("rows", [6, 90])
+def test_body_block_keeps_its_factor_while_close(rows):
     """The body block's factor is kept for a shift within ``shift_tolerance`` x its mean
-    diagonal (2.6 here: 0.5 apart is kept, 1.0 apart refactorises), up to ``max_age`` reuses,
-    and never after :meth:`invalidate` or a failed (indefinite) factorisation; a kept factor
-    solves with the factorised matrix, a new one with the new matrix."""
+    diagonal (1.7 - 3.3 here: 0.5 apart is kept, 1.0 apart refactorises), up to ``max_age``
+    reuses, and never after :meth:`invalidate` or a failed (indefinite) factorisation; a kept
+    factor solves with the factorised matrix, a new one with the new matrix. A penalty factor
+    with fewer rows than the body's 60 dofs is factorised in the augmented form, one with
+    more assembled; both solve ``M_uu`` to 1e-10."""
     k_u = laplacian_3d(20)
-    factor = sp.random(6, k_u.shape[0], density=0.3, random_state=1, format="csr")
+    factor = sp.random(rows, k_u.shape[0], density=0.3 * 6 / rows, random_state=1,
+                       format="csr")
     block = BodyBlock(factor, max_age=2, shift_tolerance=0.3)
+    assert block.augmented is (rows < k_u.shape[0])
     m = (k_u + factor.T @ factor).tocsc()
     eye = sp.identity(k_u.shape[0], format="csc")
     b = np.random.default_rng(0).standard_normal(k_u.shape[0])

@@ -76,9 +76,9 @@ class BodyBlock:
         [[K_u + tau I, F_u^T], [F_u, -I]],
 
     whose Schur complement onto the first block is ``M_uu`` (``M_uu^{-1} r`` is the first
-    block of its solution for ``(r, 0)``): half the factor's time on a 5 469-dof body with
-    ``m = 1 260``, slower where ``m > n`` (the shipped scenes' small bodies), which keep
-    ``M_uu`` assembled (:attr:`augmented`). The augmented form's ``m`` negative pivots are
+    block of its solution for ``(r, 0)``): a sparser factor where ``m < n``; where ``m > n``
+    (the shipped scenes' small bodies) ``M_uu`` stays assembled (:attr:`augmented`;
+    measurements in docs/notes/two-way-coupling.md). The augmented form's ``m`` negative pivots are
     expected; one more means ``M_uu`` is not positive definite. The pattern is fixed at the
     first call, so MUMPS' analysis runs once.
 
@@ -142,11 +142,11 @@ class BodyBlock:
             self._sum = PatternSum((n + m, n + m), [(k_u, 0, 0), *self._constant])
         assert self._sum is not None  # built with the constant pieces (internal invariant)
         eye, *rest = (piece for piece, _, _ in self._constant)
-        augmented = self._sum([k_u, float(tau) * eye, *rest])
+        matrix = self._sum([k_u, float(tau) * eye, *rest])
         if self._solver is None:
-            self._solver = SparseDirectSolver(augmented, BODY_LINEAR, expected_negative=m)
+            self._solver = SparseDirectSolver(matrix, BODY_LINEAR, expected_negative=m)
         self.factorizations += 1
-        report = replace(self._solver.factorize(augmented), shift=float(tau))
+        report = replace(self._solver.factorize(matrix), shift=float(tau))
         self._age = 0
         scale = float(np.mean(np.abs(k_u.diagonal() + self._penalty_diagonal)))
         self._factored = (float(tau), scale) if report.usable_spd else None

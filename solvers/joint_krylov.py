@@ -96,14 +96,17 @@ class BodyBlock:
         max_age: Set-ups a factor may serve after its own (0: factorise every set-up).
         shift_tolerance: Largest shift change, relative to the block's mean diagonal, that
             keeps a factor.
+        augmented: The form (None: augmented when ``m < n``); no factor is always assembled.
 
     """
 
     def __init__(self, body_factor: sp.csr_matrix | None, max_age: int = BODY_MAX_AGE,
-                 shift_tolerance: float = BODY_SHIFT_TOLERANCE) -> None:
+                 shift_tolerance: float = BODY_SHIFT_TOLERANCE,
+                 augmented: bool | None = None) -> None:
         self._factor = None if body_factor is None else sp.csr_matrix(body_factor)
-        self.augmented = self._factor is not None and \
-            self._factor.shape[0] < self._factor.shape[1]
+        by_size = self._factor is not None and self._factor.shape[0] < self._factor.shape[1]
+        self.augmented = self._factor is not None and (by_size if augmented is None
+                                                       else augmented)
         self._penalty_diagonal = (0.0 if self._factor is None else
                                   np.asarray(self._factor.multiply(self._factor).sum(axis=0))
                                   .ravel())

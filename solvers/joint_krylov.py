@@ -42,7 +42,12 @@ import scipy.sparse as sp
 from meshes.errors import InputError
 from solvers.linear import FactorReport, LinearSolverOptions, SparseDirectSolver
 from solvers.monolithic import PatternSum
-from solvers.multigrid import KrylovBase, MultigridLinearSystem, shifted_product
+from solvers.multigrid import (
+    KrylovBase,
+    MultigridLinearSystem,
+    gram_diagonal,
+    shifted_product,
+)
 
 BODY_LINEAR = LinearSolverOptions(symmetric="ldlt", mumps_blr=False)
 """Factorisation of the body block: LDL^T, whose inertia says whether it is SPD."""
@@ -96,7 +101,8 @@ class BodyBlock:
         max_age: Set-ups a factor may serve after its own (0: factorise every set-up).
         shift_tolerance: Largest shift change, relative to the block's mean diagonal, that
             keeps a factor.
-        augmented: The form (None: augmented when ``m < n``); no factor is always assembled.
+        augmented: The form: None chooses augmented when ``m < n``; without a penalty
+            factor the block is assembled.
 
     """
 
@@ -107,9 +113,7 @@ class BodyBlock:
         by_size = self._factor is not None and self._factor.shape[0] < self._factor.shape[1]
         self.augmented = self._factor is not None and (by_size if augmented is None
                                                        else augmented)
-        self._penalty_diagonal = (0.0 if self._factor is None else
-                                  np.asarray(self._factor.multiply(self._factor).sum(axis=0))
-                                  .ravel())
+        self._penalty_diagonal = 0.0 if self._factor is None else gram_diagonal(self._factor)
         self._sum: PatternSum | None = None
         self._constant: list[tuple[sp.csr_matrix, int, int]] | None = None
         self._solver: SparseDirectSolver | None = None

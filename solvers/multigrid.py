@@ -269,8 +269,7 @@ class LowRankOperator:
         self.vertex = None if g is None else _VertexPenalty.of(g, threads)
         self.g = None if g is None or self.vertex is not None else petsc_aij(g)
         self.gx = None if self.g is None else self.g.createVecs()[1]
-        self.g_diagonal: np.ndarray | float = (
-            0.0 if g is None else np.asarray(g.multiply(g).sum(axis=0)).ravel())
+        self.g_diagonal: np.ndarray | float = 0.0 if g is None else gram_diagonal(g)
 
     @classmethod
     def of_petsc(cls, a: Any, g: Any, g_diagonal: np.ndarray | float) -> LowRankOperator:
@@ -1104,6 +1103,11 @@ class MultigridLinearSystem(KrylovBase):
         direct = self.fallback.times() if self.fallback is not None else (0.0, 0.0, 0.0)
         return (self.stats.setup_time + direct[0], direct[1],
                 self.stats.solve_time - self.stats.fallback_time + direct[2])
+
+
+def gram_diagonal(g: sp.spmatrix) -> np.ndarray:
+    """``diag(G^T G)``: the column sums of ``G .* G`` (the penalty's share of the diagonal)."""
+    return np.asarray(sp.csr_matrix(g).multiply(g).sum(axis=0)).ravel()
 
 
 def shifted_product(ev: Any, tau: float, x: np.ndarray) -> np.ndarray:

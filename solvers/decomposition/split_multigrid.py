@@ -59,6 +59,7 @@ from solvers.multigrid import (
     LowRankOperator,
     MultigridOptions,
     galerkin_levels,
+    gram_diagonal,
     multigrid_cg,
     penalty_levels,
     shift_images,
@@ -240,8 +241,7 @@ class SplitMultigridSystem(KrylovBase):
         out: list[tuple[Any, np.ndarray] | None] = []
         for level, gl in zip(self.levels, chain, strict=True):
             mat = _owned_aij(self.comm, gl, rows, level)
-            colsum = np.asarray(gl.multiply(gl).sum(axis=0)).ravel()
-            out.append((mat, colsum[level.owned]))
+            out.append((mat, gram_diagonal(gl)[level.owned]))
         g0, coarse = chain[0], self.levels[0]
         return out, _owned_aij(self.comm, sp.csr_matrix(g0.T @ g0), coarse, coarse)
 

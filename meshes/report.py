@@ -68,6 +68,17 @@ def tet_quality(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return 6.0 * np.sqrt(2.0) * np.abs(tet_volumes(points, tets)) / np.maximum(l2, 1e-300) ** 1.5
 
 
+def triangle_quality(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Return ``4 sqrt(3) A / (|e_0|^2 + |e_1|^2 + |e_2|^2)`` of every triangle.
+
+    1 for an equilateral triangle, 0 for a degenerate one (``q ~ A / l^2`` when ``A << l^2``).
+    """
+    p = points[faces]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    edges2 = np.sum(np.sum((p - np.roll(p, 1, axis=1)) ** 2, axis=2), axis=1)
+    return 4.0 * np.sqrt(3.0) * area / edges2
+
+
 def components(n_points: int, tets: np.ndarray) -> int:
     """Return the number of connected pieces of the tets (through shared vertices)."""
     rows = np.repeat(tets[:, 0], 3)
@@ -95,4 +106,4 @@ def mesh_report(mesh: TetMesh) -> MeshReport:
 
 
 __all__ = ["COINCIDENT_TOLERANCE", "LOW_QUALITY", "MeshReport", "components", "coincident_points",
-           "mesh_report", "tet_quality"]
+           "mesh_report", "tet_quality", "triangle_quality"]

@@ -158,6 +158,7 @@ def command_check(args: argparse.Namespace) -> int:
     stiffnesses, cluster sizing and memory estimate computed (no dolfinx body, no solve).
     """
     from models.backend import MPI
+    from models.embedding.caps import flip_caps
     from models.embedding.surface import boundary_surface
     from solvers.solver_choice import choose_joint_split
     from wrinkles.output import json_text
@@ -176,9 +177,11 @@ def command_check(args: argparse.Namespace) -> int:
     if scene.rigid is not None:
         resolved["rigid"] = dataclasses.asdict(scene.rigid.internals.coupling)
     if scene.shell is not None:
-        surface = boundary_surface(mesh.points, mesh.tets)
-        resolved["shell"] = shell_report(scene.shell, scene.material, surface.vertices,
-                                         surface.faces, static=scene.body.dynamics == "static")
+        caps = flip_caps(boundary_surface(mesh.points, mesh.tets))
+        resolved["shell"] = shell_report(scene.shell, scene.material, caps.surface.vertices,
+                                         caps.surface.faces,
+                                         static=scene.body.dynamics == "static")
+        resolved["shell"]["cap_flips"] = caps.flips
         resolved["shell"]["layout_on_2_ranks"] = layout_for(scene, 2, lambda: scene_sizes(scene))
         if scene.shell.monolithic_two_way:
             split = choose_joint_split(2, resolved["shell"]["vertices"],

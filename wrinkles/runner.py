@@ -87,7 +87,12 @@ from wrinkles.rigid_output import BALLS_XDMF_NAME, BallStep, ball_steps, write_b
 from wrinkles.scene import Scene, SceneMesh, mesh_builder, scene_dict
 from wrinkles.shell_output import make_writer
 from wrinkles.shell_setup import Shell, build_shell
-from wrinkles.shell_stage import one_way_stage, restore_shell, shell_arrays
+from wrinkles.shell_stage import (
+    check_resumed_target,
+    one_way_stage,
+    restore_shell,
+    shell_arrays,
+)
 from wrinkles.two_way import two_way_stage
 
 SUMMED: tuple[str, ...] = ("newton_iterations", "halvings", "substeps")
@@ -292,7 +297,8 @@ def _prepare(scene: Scene, out: Path, comm: MPI.Comm, restart: bool, overwrite: 
                               source=scene.mesh.file or f"mesh.builder {scene.mesh.builder}"))
     state: BodyState | None = None
     if restart:
-        state = resume(run)
+        state = resume(run, None if shell is None
+                       else lambda saved: restore_shell_state(shell, body, saved))
         if run.rigid is not None:
             run.rigid.restore(checkpoint_stage(state, "rigid"))
     else:
@@ -420,18 +426,25 @@ def rigid_record(coupling: BallCoupling, infos: list[RigidStepInfo]) -> dict[str
             "momentum": coupling.balance()}
 
 
-def attach_shell(run: Run, shell: Shell, state: BodyState | None) -> None:
-    """Create the shell's output, restore its ``state`` if resumed, add its stage(s).
-
-    Collective. ``state`` is the checkpoint of a resumed run (``None`` for a new run).
+def restore_shell_state(shell: Shell, body: Body, state: BodyState) -> None:
+    """Set the shell's state from a checkpoint and check it against the body's (collective).
 
     Raises:
-        InputError: the checkpoint being resumed holds no shell state.
+        InputError: the checkpoint holds no shell state, or one of another shell
+            (:func:`wrinkles.shell_stage.check_resumed_target`).
 
     """
+    restore_shell(shell, checkpoint_stage(state, "shell"))
+    check_resumed_target(shell, body)
+
+
+def attach_shell(run: Run, shell: Shell, state: BodyState | None) -> None:
+    """Create the shell's output and add its stage(s); its state was restored if resumed.
+
+    Collective. ``state`` is the checkpoint of a resumed run (``None`` for a new run), whose
+    shell state :func:`resume` restored (:func:`restore_shell_state`).
+    """
     options = shell.options
-    if state is not None:
-        restore_shell(shell, checkpoint_stage(state, "shell"))
     output, last = run.scene.output, run.n_frames
     write = (make_writer(shell, run.out, run.comm, lambda f: output.writes_frame(f, last),
                          None if state is None else state.time)
@@ -461,20 +474,26 @@ def start(run: Run) -> None:
         run.series.write(run.body.t)
 
 
-def resume(run: Run) -> BodyState:
+def resume(run: Run, restore: Callable[[BodyState], None] | None = None) -> BodyState:
     """Take over the state, records and output of the run in ``run.out`` (collective).
+
+    ``restore`` (e.g. :func:`restore_shell_state`) takes the other stages' state once the
+    body's is set and before anything in ``run.out`` is written, so that its refusal leaves
+    the run on disk as it was.
 
     Returns:
         The checkpoint (its ``arrays`` hold the other stages' state, e.g. the shell's).
 
     Raises:
         InputError: no checkpoint or summary in ``run.out``, or its scene differs from this
-            one in anything but ``time``, ``output`` and ``newton``.
+            one in anything but ``time``, ``output`` and ``newton``; or ``restore``'s.
 
     """
     state = shared(run.comm, lambda: read_state(run.out / CHECKPOINT_NAME))
     records, facts = shared(run.comm, lambda: previous_run(run, state.frame))
     scatter_state(run.body, state)
+    if restore is not None:
+        restore(state)
     run.records = records
     run.facts["restarts"] = [*facts.get("restarts", []), {"frame": state.frame,
                                                           "time": state.time,

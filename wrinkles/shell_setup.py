@@ -31,6 +31,7 @@ from meshes.errors import InputError
 from meshes.validate import MeshWarning
 from models.backend import MPI
 from models.coupling import PenaltyCoupling
+from models.embedding.caps import flip_caps
 from models.embedding.clusters import (
     ClusterOptions,
     Clusters,
@@ -640,14 +641,20 @@ def build_shell(body: Body, options: ShellOptions, material: Material,
                 log: Callable[[str], None] = lambda text: None, source: str = "the mesh") -> Shell:
     """Surface -> subdivision -> rest shell, B, clusters and H, energy and solver (collective).
 
-    Every rank builds the same shell (the surface is gathered identically on all ranks). A
+    Every rank builds the same shell (the surface is gathered identically on all ranks; its
+    cap slivers flipped, :mod:`models.embedding.caps`). A
     shell that would not fit in memory is refused first (:func:`check_memory`). ``log``
     announces each stage as it ends; a shell too coarse for its skin's wrinkles gets a
     :class:`meshes.MeshWarning` (:func:`sizing_warnings`); ``source`` names the body mesh in
     the refusal of a sliver surface triangle.
     """
     t0 = time.perf_counter()
-    surface = mesh_surface(body.mesh)
+    caps = flip_caps(mesh_surface(body.mesh))
+    surface = caps.surface
+    if caps.flips:
+        log(f"shell: {caps.flips} cap sliver(s) of the body surface flipped (worst face quality "
+            f"{caps.quality_before:.3g} -> {caps.quality_after:.3g}; the shell's rest surface "
+            f"off the body's by at most {caps.moved:.3g})")
     local = body.mesh.comm.Split_type(MPI.COMM_TYPE_SHARED)
     check_memory(options, surface.faces.shape[0], local.size)
     local.Free()
@@ -685,6 +692,7 @@ def build_shell(body: Body, options: ShellOptions, material: Material,
         f"thread(s){split})")
     facts = {"vertices": int(rest.shape[0]), "faces": int(sub.faces.shape[0]),
              "coarse_surface_vertices": int(surface.vertices.shape[0]),
+             "cap_flips": caps.flips,
              "mean_edge_length": a, "solver": solver_facts(options),
              "k_L": params.k_L, "k_A": params.k_A,
              "k_B": params.k_B, "k_P": params.k_P,

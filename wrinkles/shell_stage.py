@@ -323,6 +323,23 @@ def restore_shell(shell: Shell, arrays: Mapping[str, np.ndarray]) -> None:
     shell.energy.set_hinge_branch(branch if branch.size else None)
 
 
+def check_resumed_target(shell: Shell, body: Body) -> None:
+    """Raise InputError unless a restored target is this shell's ``X_T + B u_q`` (collective).
+
+    The checkpoint holds the shell's vertex arrays, not how its vertices were made: a run
+    written from another surface with as many vertices (another mesh file under the same
+    name, or a code whose coarse surface differed, e.g. before cap slivers were flipped,
+    :mod:`models.embedding.caps`) would otherwise resume with its positions on other
+    vertices. Round-off is far below the bound, a thousandth of the mean edge.
+    """
+    gap = float(np.max(np.abs(shell.y - target(shell, body)), initial=0.0))
+    if not gap <= 1e-3 * shell.edge_length:
+        raise InputError(f"checkpoint: the shell's stored target lies up to {gap:.3g} off this "
+                         f"shell's embedding of the body (the run was written from another "
+                         f"surface: another mesh or code version); run it again with "
+                         f"--overwrite")
+
+
 def one_way_stage(shell: Shell, body: Body, write: Writer) -> Callable[[int], StageRecord]:
     """Stage run after the body stage: target from the body, shell solve, output."""
 

@@ -27,6 +27,7 @@ import numpy as np
 from numba import njit
 
 from meshes.errors import InputError
+from meshes.report import triangle_quality
 from models.shell.bending import hinge_weights
 from models.shell.dofs import check_positions
 from models.shell.hinge_angle import hinge_angles
@@ -146,7 +147,7 @@ def face_quality(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
     q = 1 for an equilateral triangle and q -> 0 for a sliver (q ~ A / l^2 when A << l^2).
     """
-    return 4.0 * np.sqrt(3.0) * face_areas(x, faces) / np.sum(squared_edges(x, faces), axis=1)
+    return triangle_quality(x, faces)
 
 
 def _check_quality(x: np.ndarray, faces: np.ndarray, min_quality: float) -> None:

@@ -140,3 +140,22 @@ def test_a_series_written_before_the_self_intersection_field_resumes_with_it(tmp
     _, _, steps = read_series(path)
     assert [t for t, _ in steps] == [0.0, 1.0, 2.0]
     assert np.array_equal(steps[2][1]["self_intersecting"], crossing)
+
+
+def test_a_checkpoint_of_another_surface_is_refused_and_the_run_kept(tmp_path):
+    """A checkpoint whose shell arrays sit on other vertices (as a run written from another
+    surface with as many vertices would: here its target and positions reversed) is refused
+    with exit 1 naming the checkpoint, and the run on disk is left as it was."""
+    out = tmp_path / "out"
+    first = wrinkles("run", str(DEFAULT), "--out", str(out), *ARGS[2:], "--frames", "2")
+    assert first.returncode == 0, first.stderr
+    with h5py.File(out / "checkpoint.h5", "r+") as h5:
+        for name in ("target", "positions"):
+            data = h5[f"stages/shell/{name}"]
+            data[...] = data[...][::-1]
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    proc = wrinkles(*args(out, "--resume"))
+    assert proc.returncode == 1, proc.stderr
+    assert "checkpoint: the shell's stored target" in proc.stderr
+    assert "another surface" in proc.stderr
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before

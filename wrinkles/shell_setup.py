@@ -654,7 +654,7 @@ def build_shell(body: Body, options: ShellOptions, material: Material,
     if caps.flips:
         log(f"shell: {caps.flips} cap sliver(s) of the body surface flipped (worst face quality "
             f"{caps.quality_before:.3g} -> {caps.quality_after:.3g}; the shell's rest surface "
-            f"off the body's by at most {caps.moved:.3g})")
+            f"off the body's by at most {caps.moved:.3g} m)")
     local = body.mesh.comm.Split_type(MPI.COMM_TYPE_SHARED)
     check_memory(options, surface.faces.shape[0], local.size)
     local.Free()

@@ -67,10 +67,12 @@ class CapFlips:
 
 
 def flip_caps(surface: Surface, max_quality: float = CAP_QUALITY) -> CapFlips:
-    """Flip the long edge of every cap below ``max_quality`` that the module's tests allow."""
+    """Flip the long edge of every cap below ``max_quality`` the module's conditions allow."""
     v, faces = surface.vertices, surface.faces.copy()
     q = triangle_quality(v, faces)
     before = float(q.min()) if q.size else 1.0
+    if not before < max_quality:  # no cap: no edge map to build
+        return CapFlips(surface, 0, before, before, 0.0)
     owner = {(int(f[k]), int(f[(k + 1) % 3])): i for i, f in enumerate(faces) for k in range(3)}
     flips, moved = 0, 0.0
     refused: set[int] = set()

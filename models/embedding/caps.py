@@ -15,8 +15,9 @@ surface moves by at most the cap's height ``h`` (the two triangulations bound th
 tetrahedron ``a b c d``), a distance the embedding B absorbs (its points may lie off the
 body's boundary by a tolerance, :mod:`models.embedding.embedding`). A flip is taken only when
 
-* ``ab`` has exactly one neighbouring face and the edge ``cd`` does not exist yet (the
-  surface stays a manifold without duplicate edges),
+* ``ab`` has exactly one neighbouring face, no edge of the pair is shared by more than two
+  faces (a non-manifold edge, e.g. where two tets touch by an edge) and the edge ``cd`` does
+  not exist yet (the surface keeps its topology, without duplicate edges),
 * the worse of the two new faces is better than the worse of the two old ones, and
 * both new faces turn by at most 60 degrees from the pair's area-weighted normal (no fold).
 
@@ -28,6 +29,7 @@ returned unchanged.
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -73,7 +75,10 @@ def flip_caps(surface: Surface, max_quality: float = CAP_QUALITY) -> CapFlips:
     before = float(q.min()) if q.size else 1.0
     if not before < max_quality:  # no cap: no edge map to build
         return CapFlips(surface, 0, before, before, 0.0)
-    owner = {(int(f[k]), int(f[(k + 1) % 3])): i for i, f in enumerate(faces) for k in range(3)}
+    edges = [(int(f[k]), int(f[(k + 1) % 3])) for f in faces for k in range(3)]
+    counts = Counter(edge for a, b in edges for edge in ((a, b), (b, a)))
+    shared = {edge for edge, n in counts.items() if n > 2}  # an edge of more than two faces
+    owner = {edge: index // 3 for index, edge in enumerate(edges) if edge not in shared}
     flips, moved = 0, 0.0
     refused: set[int] = set()
     while True:
@@ -81,7 +86,7 @@ def flip_caps(surface: Surface, max_quality: float = CAP_QUALITY) -> CapFlips:
         if not caps:
             break
         i = min(caps, key=lambda c: (q[c], c))  # the worst cap first
-        height = _flip(v, faces, q, owner, i)
+        height = _flip(v, faces, q, owner, i, shared)
         if height is None:
             refused.add(i)
             continue
@@ -94,9 +99,12 @@ def flip_caps(surface: Surface, max_quality: float = CAP_QUALITY) -> CapFlips:
     return CapFlips(new, flips, before, float(q.min()), moved)
 
 
-def _flip(v: FloatArray, faces: IntArray, q: FloatArray,
-          owner: dict[tuple[int, int], int], i: int) -> float | None:
-    """Flip face ``i``'s longest edge in place if allowed; return the cap's height or None."""
+def _flip(v: FloatArray, faces: IntArray, q: FloatArray, owner: dict[tuple[int, int], int],
+          i: int, shared: set[tuple[int, int]]) -> float | None:
+    """Flip face ``i``'s longest edge in place if allowed; return the cap's height or None.
+
+    ``shared``: the (directed) edges of more than two faces, which no flip touches.
+    """
     f = faces[i]
     lengths = [np.linalg.norm(v[f[(k + 1) % 3]] - v[f[k]]) for k in range(3)]
     k = int(np.argmax(lengths))
@@ -105,7 +113,8 @@ def _flip(v: FloatArray, faces: IntArray, q: FloatArray,
     if j is None:
         return None
     d = int(next(x for x in faces[j] if x not in (a, b)))
-    if (c, d) in owner or (d, c) in owner:
+    pair_edges = {(int(x[m]), int(x[(m + 1) % 3])) for x in (faces[i], faces[j]) for m in range(3)}
+    if pair_edges & shared or (c, d) in owner or (d, c) in owner or (c, d) in shared:
         return None
     new = np.array([[a, d, c], [d, b, c]], dtype=faces.dtype)
     q_new = triangle_quality(v, new)

@@ -83,3 +83,14 @@ def test_the_bunny_loses_its_ten_caps_and_stays_a_closed_oriented_surface():
     assert 0.0 < out.moved < 0.01
     volume = signed_volume(s.vertices, s.faces)
     assert signed_volume(out.surface.vertices, f) == pytest.approx(volume, rel=1e-3)
+
+
+def test_no_flip_touches_an_edge_of_more_than_two_faces():
+    """Two tets touching by the edge 0-1: the cap (0, 2, 1) across it (q = 0.023) would flip
+    with a face of the other tet and join the two surfaces; it is kept."""
+    points = np.array([[0, 0, 0], [1, 0, 0], [0.5, 0.01, 0], [0.5, 0.3, 0.5], [0.5, -0.3, -0.6],
+                       [0.4, -0.6, 0.3]], dtype=np.float64)
+    s = boundary_surface(points, np.array([[0, 1, 2, 3], [0, 1, 4, 5]]))
+    assert triangle_quality(s.vertices, s.faces).min() < 0.03
+    out = flip_caps(s)
+    assert out.flips == 0 and out.surface is s

@@ -32,7 +32,7 @@ __all__ = ["MPI", "PETSc", "basix", "dolfinx", "ufl", "DOLFINX_VERSION", "begin_
            "mesh_from_arrays",
            "vector_space", "is_affine", "global_scalar", "quadrature_expression",
            "global_min_on_cells", "exterior_facet_domain", "with_facet_domains",
-           "assemble_snes_residual"]
+           "assemble_snes_residual", "petsc_error_message", "set_from_options"]
 
 DOLFINX_VERSION: str = dolfinx.__version__
 
@@ -51,6 +51,46 @@ def begin_petsc_log() -> None:
 
 
 begin_petsc_log()
+
+def set_from_options(solver: Any, options: Mapping[str, Any]) -> None:
+    """Set ``options`` under ``solver``'s prefix and call its ``setFromOptions``.
+
+    dolfinx's ``petsc_options`` do the same but leave the prefix pushed on PETSc's options
+    database when PETSc refuses an option (every later option then lands under it) and delete
+    the options before a factor reads its own (``mat_*``) at its first set-up. Here the prefix
+    is popped in every case and the options stay (under the solver's own prefix).
+
+    Raises:
+        PETSc.Error: PETSc refused an option (:func:`petsc_error_message` gives its words).
+
+    """
+    table = PETSc.Options()
+    table.prefixPush(solver.getOptionsPrefix())
+    try:
+        for key, value in options.items():
+            table.setValue(key, value)
+        solver.setFromOptions()
+    finally:
+        table.prefixPop()
+
+
+def petsc_error_message(err: Exception) -> str:
+    """PETSc's own words in a petsc4py ``PETSc.Error``: its message lines, not the call stack.
+
+    ``str(err)`` is ``"error code N"`` followed by ``"[rank] Function() at file:line"`` frames
+    and ``"[rank] message"`` lines; the message lines are joined with ``"; "`` (the first line
+    when there are none).
+    """
+    lines = str(err).splitlines()
+    words = [line.split("] ", 1)[1] for line in lines[1:]
+             if line.startswith("[") and "] " in line and "() at " not in line]
+    return "; ".join(words) if words else (lines[0] if lines else repr(err))
+
+
+# PETSc's list of unread options at exit would also name options of a solver a run never
+# calls (the static Newton of a dynamic body); the scene's expert options are checked where
+# they are set instead (``solvers.body_newton.unread_options``: an InputError naming the key).
+PETSc.Options().setValue("options_left", "0")
 
 
 # --- body helpers (dolfinx-0.11-specific calls used by models/body.py) ------------------------

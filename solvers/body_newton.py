@@ -53,7 +53,9 @@ from models.backend import (
     dolfinx,
     global_min_on_cells,
     global_scalar,
+    petsc_error_message,
     quadrature_expression,
+    set_from_options,
     ufl,
     with_facet_domains,
 )
@@ -85,7 +87,9 @@ class NewtonOptions:
         linear_solver: Direct solver package for the Newton systems: ``"mumps"`` or
             ``"superlu_dist"`` (LU, in the wheel).
         petsc: PETSc options of the SNES / KSP / PC, set after the ones these fields stand
-            for (:meth:`petsc_options`), e.g. ``{"ksp_type": "gmres", "pc_type": "hypre"}``.
+            for (:meth:`petsc_options`), e.g. ``{"ksp_type": "cg", "pc_type": "gamg"}``. An
+            option PETSc refuses, or one none of the SNES, KSP, PC and factor reads (a
+            misspelt name, a value of the wrong kind), is an ``InputError`` naming it.
 
     """
 
@@ -188,6 +192,35 @@ def bc_rows(bcs: list[Any], u: Any) -> np.ndarray:
     return (local + start).astype(PETSc.IntType)
 
 
+def clear_options(prefix: str, options: dict[str, Any]) -> None:
+    """Delete ``options`` under ``prefix`` from PETSc's options database (where set)."""
+    table = PETSc.Options()
+    for key in options:
+        if table.hasName(f"{prefix}{key}"):
+            table.delValue(f"{prefix}{key}")
+
+
+def unread_options(prefix: str, options: dict[str, Any], factor: bool) -> dict[str, Any]:
+    """Check the expert PETSc ``options`` set under ``prefix`` against what PETSc read.
+
+    ``mat_*`` options are read by the factor at its first set-up (the first solve), the others
+    by ``SNESSetFromOptions``. With ``factor`` False the others are checked and the ``mat_*``
+    ones returned for a check after the first solve; with ``factor`` True all are checked.
+
+    Raises:
+        InputError: naming the options none of the SNES, KSP, PC and factor read.
+
+    """
+    table = PETSc.Options()
+    due = {k: v for k, v in options.items() if factor or not k.startswith("mat_")}
+    unread = {k: v for k, v in due.items() if not table.used(f"{prefix}{k}")}
+    if unread:
+        names = ", ".join(f"newton.options.petsc.{k} = {v!r}" for k, v in unread.items())
+        raise InputError(f"{names}: not read by PETSc (a misspelt name, a value of the wrong "
+                         "kind, or an option of a solver not in use)")
+    return {k: v for k, v in options.items() if k not in due}
+
+
 class EnergyNewton:
     """Minimise an energy form ``Pi(u)`` with SNES Newton and an energy line search.
 
@@ -217,10 +250,20 @@ class EnergyNewton:
         jacobian = ufl.derivative(residual, u, ufl.TrialFunction(u.function_space))
         self._full = tuple(dolfinx.fem.form(f) for f in (energy, residual, jacobian))
         self._energy, self._F, self._J = self._full
-        prefix = f"body_newton_{next(_COUNTER)}_"
+        self._prefix = f"body_newton_{next(_COUNTER)}_"
         self.problem = dolfinx.fem.petsc.NonlinearProblem(
-            self._F, u, bcs=bcs, J=self._J, petsc_options_prefix=prefix,
-            petsc_options=self.options.petsc_options(), kind=self.options.matrix_kind)
+            self._F, u, bcs=bcs, J=self._J, petsc_options_prefix=self._prefix,
+            kind=self.options.matrix_kind)
+        try:
+            set_from_options(self.problem.solver, self.options.petsc_options())
+            self._unchecked = unread_options(self._prefix, self.options.petsc, factor=False)
+        except PETSc.Error as err:
+            clear_options(self._prefix, self.options.petsc_options())
+            raise InputError(f"newton.options.petsc {self.options.petsc}: PETSc refused "
+                             f"them: {petsc_error_message(err)}") from None
+        except InputError:
+            clear_options(self._prefix, self.options.petsc_options())
+            raise
         self.problem.solver.setObjective(self._objective)  # type: ignore[arg-type]
         if self.options.line_search and not self.options.uses_petsc_bt:
             self.problem.solver.setLineSearchPreCheck(self._armijo)
@@ -427,6 +470,12 @@ class EnergyNewton:
             return NewtonResult(False, 0, 0, math.nan, math.inf, start)
         self._last_step, self._ls_failed = 1.0, False
         self.problem.solve()
+        if self._unchecked:  # the factor's options are read at its first set-up
+            try:
+                self._unchecked = unread_options(self._prefix, self._unchecked, factor=True)
+            except InputError:
+                clear_options(self._prefix, self.options.petsc_options())
+                raise
         reason = int(snes.getConvergedReason())  # type: ignore[call-overload]
         min_det = self.min_det_f()
         energy = self.energy()

@@ -699,12 +699,14 @@ def run_frames(run: Run, log: Callable[[str], None] = print, render: bool = True
     Raises:
         SolverError: a step failed after all halvings; ``summary.json`` records the failure
             and the frames completed before it stay on disk.
+        InputError: an input only a solve can check (an expert PETSc option of the factor that
+            its first set-up did not read), recorded the same way.
 
     """
     for frame in range(len(run.records) + 1, run.n_frames + 1):
         try:
             record = run_frame(run, frame)
-        except SolverError as exc:
+        except (SolverError, InputError) as exc:
             run.facts.update(status="failed", error=str(exc), failed_frame=frame,
                              wall_time=time.perf_counter() - run.started)
             write_summary(run)

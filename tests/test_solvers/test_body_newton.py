@@ -14,6 +14,7 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
+from meshes.errors import InputError
 from models.backend import MPI, PETSc, dolfinx, ufl, vector_space
 from models.quadratic import QuadraticTerm
 from solvers.body_newton import EnergyNewton, NewtonOptions
@@ -93,6 +94,55 @@ def test_block_jacobian_of_mumps_solves_as_the_scalar_one_of_superlu():
     (kind_m, rep_m, u_m), (kind_s, rep_s, u_s) = results
     print(f"mumps {kind_m} {rep_m}; superlu_dist {kind_s} {rep_s}")
     assert kind_m.endswith("baij") and kind_s.endswith("aij") and not kind_s.endswith("baij")
-    assert NewtonOptions(petsc={"pc_type": "hypre"}).matrix_kind == "aij"
+    assert NewtonOptions(petsc={"pc_type": "gamg"}).matrix_kind == "aij"
     assert rep_m.newton_iterations == rep_s.newton_iterations >= 2 and rep_m.contact > 0.0
     assert np.max(np.abs(u_m - u_s)) <= 1e-10 * np.max(np.abs(u_s)) and np.max(np.abs(u_s)) > 0
+
+
+def box_problem(petsc: dict[str, object]) -> tuple[EnergyNewton, dolfinx.fem.Function]:
+    """The Poisson-like vector energy of a 2^3 box, clamped at x = 0, with expert options."""
+    mesh = dolfinx.mesh.create_unit_cube(MPI.COMM_SELF, 2, 2, 2)
+    V = vector_space(mesh, 1)
+    u = dolfinx.fem.Function(V)
+    f = dolfinx.fem.Constant(mesh, np.array([1e-3, 0.0, -2e-3]))
+    energy = (0.5 * ufl.inner(ufl.grad(u), ufl.grad(u)) - ufl.dot(f, u)) * ufl.dx
+    facets = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[0], 0.0))
+    bc = dolfinx.fem.dirichletbc(np.zeros(3), dolfinx.fem.locate_dofs_topological(V, 2, facets),
+                                 V)
+    det_f = ufl.det(ufl.Identity(3) + ufl.grad(u))
+    return EnergyNewton(energy, u, [bc], det_f, 1, NewtonOptions(petsc=petsc), 1.0), u
+
+
+@pytest.mark.parametrize(("petsc", "named"), [
+    ({"ksp_type": "nonsense"}, "Unable to find requested KSP type nonsense"),
+    ({"ksp_type": "cg", "pc_type": "hypre"}, "Unable to find requested PC type hypre"),
+    ({"ksp_rtoll": 1e-12}, "newton.options.petsc.ksp_rtoll = 1e-12: not read by PETSc"),
+    ({"ksp_rtol": 1e-12}, "newton.options.petsc.ksp_rtol = 1e-12: not read"),  # preonly
+])
+def test_expert_petsc_options_refused_at_set_up_name_the_option(petsc, named):
+    """PETSc's refusal (an unknown type) and an option nothing reads (a misspelt name, a
+    Krylov tolerance of the default ``preonly`` solve) are InputErrors naming it, raised
+    when the solver is built; the database is left without them."""
+    before = PETSc.Options().getAll()
+    with pytest.raises(InputError) as info:
+        box_problem(petsc)
+    print(info.value)
+    assert named in str(info.value)
+    assert PETSc.Options().getAll() == before
+    PETSc.Options()["probe_option"] = 1  # no prefix left pushed
+    assert "probe_option" in PETSc.Options().getAll()
+    PETSc.Options().delValue("probe_option")
+
+
+def test_expert_petsc_options_of_the_factor_are_checked_at_the_first_solve():
+    """Options read by the Krylov solver take effect; a MUMPS control is read by the factor
+    at the first solve, and one that MUMPS does not know is refused there."""
+    solver, u = box_problem({"ksp_type": "cg", "ksp_rtol": 1e-13, "mat_mumps_icntl_7": 5})
+    ksp = solver.problem.solver.getKSP()
+    assert ksp.getType() == "cg" and ksp.getTolerances()[0] == 1e-13
+    result = solver.solve()
+    assert result.converged and np.abs(u.x.array).max() > 0.0
+    assert solver.problem.solver.getKSP().getPC().getFactorMatrix().getMumpsIcntl(7) == 5
+    solver, _ = box_problem({"mat_mumps_icntl_77777": 1})
+    with pytest.raises(InputError, match="mat_mumps_icntl_77777 = 1: not read by PETSc"):
+        solver.solve()

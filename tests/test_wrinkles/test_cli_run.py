@@ -161,6 +161,11 @@ def test_bad_scene_exits_1_with_one_line(tmp_path, kind):
     (["run", str(DEFAULT), "--frames", "0"], r"^error: --frames: time\.frames must be >= 1"),
     (["run", str(DEFAULT), "--set", "materal.E=1"],
      r"^error: drop_block\.toml: unknown key 'materal' \(did you mean 'material'\?\)$"),
+    (["run", str(DEFAULT), "--set", "newton.options.petsc.pc_type=hypre"],
+     r"^error: newton\.options\.petsc \{'pc_type': 'hypre'\}: PETSc refused them: .*"
+     r"Unable to find requested PC type hypre$"),
+    (["run", str(DEFAULT), "--set", "newton.options.petsc.ksp_rtoll=1e-12"],
+     r"^error: newton\.options\.petsc\.ksp_rtoll = 1e-12: not read by PETSc"),
 ])
 def test_bad_usage_exits_1_with_one_line(args, pattern):
     proc = wrinkles(*args)

@@ -123,6 +123,8 @@ class NewtonOptions:
         if self.linear_solver not in ("mumps", "superlu_dist"):
             raise InputError("newton.linear_solver must be 'mumps' or 'superlu_dist', "
                              f"got {self.linear_solver!r}")
+        if self.petsc:
+            check_petsc_options(self.petsc_options(), self.petsc)
 
     @property
     def matrix_kind(self) -> str:
@@ -192,6 +194,46 @@ def bc_rows(bcs: list[Any], u: Any) -> np.ndarray:
     return (local + start).astype(PETSc.IntType)
 
 
+def configure(snes: Any, options: dict[str, Any], expert: dict[str, Any]) -> dict[str, Any]:
+    """Set ``options`` on ``snes`` (its prefix) and check the ``expert`` ones PETSc read.
+
+    Returns the expert ``mat_*`` options, which the factor reads at its first set-up (check
+    them then with :func:`unread_options`).
+
+    Raises:
+        InputError: PETSc refused an option, or an expert one is not read (the options of
+            the prefix are then removed from PETSc's database).
+
+    """
+    prefix = snes.getOptionsPrefix()
+    try:
+        set_from_options(snes, options)
+        return unread_options(prefix, expert, factor=False)
+    except PETSc.Error as err:
+        clear_options(prefix, options)
+        raise InputError(f"newton.options.petsc {expert}: PETSc refused them: "
+                         f"{petsc_error_message(err)}") from None
+    except InputError:
+        clear_options(prefix, options)
+        raise
+
+
+def check_petsc_options(options: dict[str, Any], expert: dict[str, Any]) -> None:
+    """Check the expert options on a bare SNES (no problem attached) before any solver exists.
+
+    Raises:
+        InputError: as :func:`configure` (a scene's bad option is refused when it is read).
+
+    """
+    snes = PETSc.SNES().create(PETSc.COMM_SELF)
+    snes.setOptionsPrefix(f"body_newton_check_{next(_COUNTER)}_")
+    try:
+        configure(snes, options, expert)
+        clear_options(snes.getOptionsPrefix(), options)
+    finally:
+        snes.destroy()
+
+
 def clear_options(prefix: str, options: dict[str, Any]) -> None:
     """Delete ``options`` under ``prefix`` from PETSc's options database (where set)."""
     table = PETSc.Options()
@@ -254,16 +296,8 @@ class EnergyNewton:
         self.problem = dolfinx.fem.petsc.NonlinearProblem(
             self._F, u, bcs=bcs, J=self._J, petsc_options_prefix=self._prefix,
             kind=self.options.matrix_kind)
-        try:
-            set_from_options(self.problem.solver, self.options.petsc_options())
-            self._unchecked = unread_options(self._prefix, self.options.petsc, factor=False)
-        except PETSc.Error as err:
-            clear_options(self._prefix, self.options.petsc_options())
-            raise InputError(f"newton.options.petsc {self.options.petsc}: PETSc refused "
-                             f"them: {petsc_error_message(err)}") from None
-        except InputError:
-            clear_options(self._prefix, self.options.petsc_options())
-            raise
+        self._unchecked = configure(self.problem.solver, self.options.petsc_options(),
+                                    self.options.petsc)
         self.problem.solver.setObjective(self._objective)  # type: ignore[arg-type]
         if self.options.line_search and not self.options.uses_petsc_bt:
             self.problem.solver.setLineSearchPreCheck(self._armijo)

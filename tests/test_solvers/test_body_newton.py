@@ -9,6 +9,8 @@ one Newton step (exact Jacobian), and the objective must include the term.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -122,12 +124,24 @@ def box_problem(petsc: dict[str, object]) -> tuple[EnergyNewton, dolfinx.fem.Fun
 def test_expert_petsc_options_refused_at_set_up_name_the_option(petsc, named):
     """PETSc's refusal (an unknown type) and an option nothing reads (a misspelt name, a
     Krylov tolerance of the default ``preonly`` solve) are InputErrors naming it, raised
-    when the solver is built; the database is left without them."""
+    when the options are read (a scene's before any solver exists) and again by the solver
+    given them anyway; the database is left without them and without a pushed prefix."""
     before = PETSc.Options().getAll()
     with pytest.raises(InputError) as info:
-        box_problem(petsc)
+        NewtonOptions(petsc=petsc)
     print(info.value)
     assert named in str(info.value)
+    assert PETSc.Options().getAll() == before
+    unchecked = object.__new__(NewtonOptions)  # the fields without __post_init__'s check
+    object.__setattr__(unchecked, "petsc", petsc)
+    for name, value in vars(NewtonOptions()).items():
+        if name != "petsc":
+            object.__setattr__(unchecked, name, value)
+    mesh = dolfinx.mesh.create_unit_cube(MPI.COMM_SELF, 1, 1, 1)
+    u = dolfinx.fem.Function(vector_space(mesh, 1))
+    energy = 0.5 * ufl.inner(ufl.grad(u), ufl.grad(u)) * ufl.dx
+    with pytest.raises(InputError, match=re.escape(named)):
+        EnergyNewton(energy, u, [], ufl.det(ufl.Identity(3) + ufl.grad(u)), 1, unchecked)
     assert PETSc.Options().getAll() == before
     PETSc.Options()["probe_option"] = 1  # no prefix left pushed
     assert "probe_option" in PETSc.Options().getAll()

@@ -162,10 +162,11 @@ def test_bad_scene_exits_1_with_one_line(tmp_path, kind):
     (["run", str(DEFAULT), "--set", "materal.E=1"],
      r"^error: drop_block\.toml: unknown key 'materal' \(did you mean 'material'\?\)$"),
     (["run", str(DEFAULT), "--set", "newton.options.petsc.pc_type=hypre"],
-     r"^error: newton\.options\.petsc \{'pc_type': 'hypre'\}: PETSc refused them: .*"
-     r"Unable to find requested PC type hypre$"),
-    (["run", str(DEFAULT), "--set", "newton.options.petsc.ksp_rtoll=1e-12"],
-     r"^error: newton\.options\.petsc\.ksp_rtoll = 1e-12: not read by PETSc"),
+     r"^error: drop_block\.toml: newton\.options: newton\.options\.petsc \{'pc_type': "
+     r"'hypre'\}: PETSc refused them: .*Unable to find requested PC type hypre$"),
+    (["check", str(DEFAULT), "--set", "newton.options.petsc.ksp_rtoll=1e-12"],
+     r"^error: drop_block\.toml: newton\.options: newton\.options\.petsc\.ksp_rtoll = "
+     r"1e-12: not read by PETSc"),
 ])
 def test_bad_usage_exits_1_with_one_line(args, pattern):
     proc = wrinkles(*args)

@@ -15,20 +15,24 @@ with ``theta_min`` the smallest Ritz value of ``steps`` Lanczos steps on ``A`` (
 Matrix Computations, 4th ed., sec. 10.1). The Ritz values interlace the spectrum, so
 ``lambda_min <= theta_min``: the restart never lies above ``margin |lambda_min|``, and an
 underestimate only leaves the ladder to climb on from there. A dense negative spectrum (a
-buckling shell: hundreds of negative pivots) keeps the plain ladder, whose decaying shifts
-follow the softest modes down; so do the later iterations of a solve, where restarting at
-every indefinite attempt was measured to change the buckling path and cost iterations
-(docs/notes/solver-choice.md), except for an outlier: an attempt at ``tau`` whose estimate
+buckling shell, or a skin pressed by an impact: hundreds of negative pivots) keeps the
+ladder's shifts, whose decaying values follow the softest modes down; at a solve's first
+iteration it only leaves out the rungs ``tau < -theta_min``, which cannot pass
+(``lambda_min + tau <= theta_min + tau < 0``): the shift the ladder would accept, at fewer
+factorisations. The later iterations of a solve keep the ladder (restarting at every
+indefinite attempt was measured to change the buckling path and cost iterations:
+docs/notes/solver-choice.md), except for an outlier: an attempt at ``tau`` whose estimate
 lies beyond ``OUTLIER max(tau, floor)``, the floor the larger of the ladder's first rung and
 the previous iteration's shift (a stencil whose curvature dwarfs the ladder's
 scale, e.g. a hinge across a sliver: docs/notes/sliver-hinges.md) restarts as well. A
 buckling path's decayed probe fails by less than its last accepted shift, a rung or two,
-and never meets that test.
+and never meets that test; when its negative pivots are isolated, the estimate made for that
+test leaves out the rungs it proves indefinite as well.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -40,6 +44,8 @@ MARGIN: float = 2.0
 """The restart shift as a multiple of ``|theta_min|`` (> 1: a margin over the estimate)."""
 ISOLATED_NEGATIVES: int = 16
 """Most negative pivots (beyond the expected ones) for which the ladder is restarted."""
+ROUNDOFF: float = 1e-3
+"""Relative slack below ``-theta_min`` within which a rung is not proven indefinite."""
 OUTLIER: float = 100.0
 """A later iteration restarts when ``|theta_min|`` exceeds this times the larger of its
 attempt's shift and the caller's floor (``restart_ladder``'s ``beyond``)."""
@@ -101,18 +107,42 @@ def restart_shifts(theta_min: float, growth: float, count: int,
     return [start * growth**j for j in range(count)]
 
 
-def restart_ladder(report: FactorReport, matvec: Callable[[np.ndarray], np.ndarray], n: int,
-                   shift: ShiftOptions, beyond: float = 0.0) -> list[float]:
-    """Return the shifts that replace the ladder after the indefinite factorisation ``report``.
+def proven_indefinite(ladder: Sequence[float], theta_min: float) -> int:
+    """How many leading rungs of ``ladder`` leave ``A + tau I`` certainly indefinite.
 
-    Empty (keep the ladder) unless its extra negative pivots are isolated (:func:`is_isolated`)
-    and ``|theta_min| > beyond``; else ``shift.max_shifts`` shifts from ``MARGIN |theta_min|``
-    of the operator ``matvec`` of order ``n`` (:func:`lowest_ritz_value`), growing by
-    ``shift.growth``. ``beyond`` > 0 restarts only for an outlier (module doc).
+    ``A + tau I`` has the eigenvalue ``lambda_min + tau <= theta_min + tau``, negative for
+    ``tau < -theta_min``; a rung within :data:`ROUNDOFF` of ``-theta_min`` is kept (the
+    factorisation's inertia decides it).
     """
-    if not is_isolated(report.negative_pivots, report.expected_negative):
+    count = 0
+    for tau in ladder:
+        if not tau < (1.0 - ROUNDOFF) * -theta_min:
+            break
+        count += 1
+    return count
+
+
+def restart_ladder(report: FactorReport, matvec: Callable[[np.ndarray], np.ndarray], n: int,
+                   shift: ShiftOptions, beyond: float = 0.0,
+                   ladder: Sequence[float] = ()) -> list[float]:
+    """Return the shifts that replace ``ladder`` (those left) after the indefinite ``report``.
+
+    The estimate ``theta_min`` of the operator ``matvec`` of order ``n``
+    (:func:`lowest_ritz_value`) is made for a solve's first iteration (``beyond`` = 0) and for
+    isolated extra negative pivots (:func:`is_isolated`). Isolated ones with ``|theta_min| >
+    beyond`` restart: ``shift.max_shifts`` shifts from ``MARGIN |theta_min|``, growing by
+    ``shift.growth`` (``beyond`` > 0 restarts only for an outlier, module doc). Otherwise the
+    ladder goes on without its rungs that the estimate proves indefinite
+    (:func:`proven_indefinite`): the same shift is accepted at fewer factorisations. Empty:
+    keep the ladder as it is.
+    """
+    isolated = is_isolated(report.negative_pivots, report.expected_negative)
+    if not report.indefinite or not (isolated or beyond == 0.0):
         return []
     theta = lowest_ritz_value(matvec, n)
-    if not -theta > beyond:
+    if not theta < 0.0:
         return []
-    return restart_shifts(theta, shift.growth, shift.max_shifts)
+    if isolated and -theta > beyond:
+        return restart_shifts(theta, shift.growth, shift.max_shifts)
+    skipped = proven_indefinite(ladder, theta)
+    return [float(t) for t in ladder[skipped:]] if 0 < skipped < len(ladder) else []

@@ -708,16 +708,16 @@ def factorize_with_shift(factorize: Callable[[float], FactorReport], diagonal_sc
                          shift: ShiftOptions, start: float = 0.0,
                          accept: Callable[[FactorReport], bool] | None = None,
                          zero_first: bool | None = None,
-                         restart: Callable[[FactorReport], list[float]] | None = None
-                         ) -> list[FactorReport]:
+                         restart: Callable[[FactorReport, list[float]], list[float]] | None
+                         = None) -> list[FactorReport]:
     """Call ``factorize(tau)`` for the shifts of :func:`shift_candidates` until one is accepted.
 
     By default a factorisation is accepted when it succeeded and is not indefinite (Nocedal &
     Wright Alg. 3.3); the shell Newton passes an ``accept`` that also solves and line-searches
     (a direction that is not a descent direction or fails the line search moves on to the next
     shift). With ``restart``, a first attempt whose factorisation is indefinite replaces the
-    remaining shifts by ``restart(report)``'s (those above that attempt; none keeps the ladder;
-    :mod:`solvers.inertia_shift`).
+    remaining shifts by ``restart(report, remaining)``'s (those above that attempt; none keeps
+    the ladder; :mod:`solvers.inertia_shift`).
     Returns every attempt, the last one being the factor left in the solver.
     """
     ok = accept or (lambda report: report.usable_spd)
@@ -731,7 +731,7 @@ def factorize_with_shift(factorize: Callable[[float], FactorReport], diagonal_sc
         if ok(reports[-1]):
             break
         if restart is not None and len(reports) == 1 and reports[0].indefinite:
-            fresh = [t for t in restart(reports[0]) if t > tau]
+            fresh = [t for t in restart(reports[0], candidates[i:]) if t > tau]
             if fresh:
                 candidates, i = fresh, 0
     return reports

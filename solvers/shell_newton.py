@@ -794,25 +794,26 @@ class ShellNewtonSolver:
                           reports[0].negative_pivots, cg_before)
 
     def _restart(self, ev: EnergyEval,
-                 floor: float | None) -> Callable[[FactorReport], list[float]]:
+                 floor: float | None) -> Callable[[FactorReport, list[float]], list[float]]:
         """Shifts from the Lanczos estimate of the full Hessian's smallest eigenvalue.
 
-        Used on the direct path for a factorisation with a few extra negative pivots
-        (:mod:`solvers.inertia_shift`); the full Hessian is ``A + G^T G`` when the penalty
-        comes as the factor G (its product :attr:`hessian_product`). ``floor`` None: a
-        solve's first iteration, any estimate restarts; else a later one, where only an
-        outlier beyond ``OUTLIER max(tau, floor)`` does, ``tau`` the attempt's shift and
-        ``floor`` the larger of the ladder's first rung and the previous iteration's shift
-        (an unshifted attempt near the minimum is measured against the shift the path came
-        down from).
+        Used on the direct path after an indefinite first attempt
+        (:func:`solvers.inertia_shift.restart_ladder`, given the rungs left); the full Hessian
+        is ``A + G^T G`` when the penalty comes as the factor G (its product
+        :attr:`hessian_product`). ``floor`` None: a solve's first iteration, where any
+        estimate restarts a few extra negative pivots and skips the rungs it proves
+        indefinite for many; else a later one, where only an outlier beyond ``OUTLIER
+        max(tau, floor)`` restarts, ``tau`` the attempt's shift and ``floor`` the larger of
+        the ladder's first rung and the previous iteration's shift (an unshifted attempt near
+        the minimum is measured against the shift the path came down from).
         """
         assert ev.hess is not None and ev.grad is not None  # order-2 evaluation
         n = ev.grad.size
 
-        def restart(report: FactorReport) -> list[float]:
+        def restart(report: FactorReport, ladder: list[float]) -> list[float]:
             beyond = 0.0 if floor is None else OUTLIER * max(report.shift, floor)
             return restart_ladder(report, lambda v: self.hessian_product(ev, v), n,
-                                  self.options.shift, beyond)
+                                  self.options.shift, beyond, ladder)
         return restart
 
     def _direction(self, x: np.ndarray, ev: EnergyEval, timers: _Timers,

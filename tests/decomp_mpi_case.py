@@ -92,7 +92,7 @@ def _split(problem: ShellProblem, partition: np.ndarray, x0: np.ndarray, comm: M
     ritz_split = list(ritz)
     ritz.clear()
     serial = ShellNewtonSolver(energy, options)  # the same two frames on one solver: its
-    serial.minimize(x0)  # shift memory from frame 1 is the split solver's
+    _, rep_serial = serial.minimize(x0)  # shift memory from frame 1 is the split solver's
     energy.set_target(y2)
     x2_ref, rep2_ref = serial.minimize(x2_start)
     energy.set_target(problem.target)
@@ -106,7 +106,9 @@ def _split(problem: ShellProblem, partition: np.ndarray, x0: np.ndarray, comm: M
     return x, {"iterations": rep.iterations, "converged": rep.converged,
                "time_total": rep.time_total, "local_entries": entries,
                "owned_total": owned, "analyses": info.symbolic_analyses,
-               "factorizations": rep.factorizations, "frame2_converged": rep2.converged,
+               "factorizations": rep.factorizations,
+               "factorizations_serial": rep_serial.factorizations,
+               "frame2_converged": rep2.converged,
                "frame2_iterations": rep2.iterations, "frame2_iterations_ref": rep2_ref.iterations,
                "frame2_energy_rel": abs(rep2.energy - rep2_ref.energy) / abs(rep2_ref.energy),
                "frame2_max_diff": float(np.abs(x2 - x2_ref).max()),

@@ -75,8 +75,10 @@ def test_split_low_rank_newton_equals_serial(mpiexec) -> None:
     assert out["frame2_max_diff"] < 1e-8
     assert out["analyses"] == 1  # one symbolic analysis for all factorisations of both frames
     # the same shifted retries as the serial solve: the inertia test (INFOG(12) > 3c) sees
-    # the negative eigenvalues on 2 ranks too (ICNTL(13) = 1; ScaLAPACK's root hid them)
-    assert out["factorizations"] == out["factorizations_ref"] > out["iterations"]
+    # the negative eigenvalues on 2 ranks too (ICNTL(13) = 1; ScaLAPACK's root hid them);
+    # the Lanczos estimate leaves out rungs of the plain ladder's (the reference's) retries
+    assert out["factorizations"] == out["factorizations_serial"] > out["iterations"]
+    assert out["factorizations"] <= out["factorizations_ref"]
     # the shift ladder's Lanczos restart on the distributed product: the full Hessian's
     # product is the serial one, so are the estimates, call by call
     assert out["product_error"] < 1e-13

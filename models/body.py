@@ -114,6 +114,62 @@ class PinSpec:
         return arm @ (self.rotation(t) - np.eye(3)).T + self.displacement(t)
 
 
+CONFLICT_TIMES: tuple[float, ...] = (0.37, 1.0, 2.9)
+"""Times (load parameters) at which two pins' motions of a shared node are compared: affine
+and rotational motions that agree at three generic times are the same motion."""
+
+
+@dataclass(frozen=True)
+class PinConflict:
+    """Two pins holding the same component of shared nodes to different motions.
+
+    Attributes:
+        first: Index of the first pin in ``BodyOptions.pins``.
+        second: Index of the second pin.
+        component: The displacement component both hold (0 = x, 1 = y, 2 = z).
+        nodes: Indices of the shared nodes whose motions differ (rows of the positions).
+
+    """
+
+    first: int
+    second: int
+    component: int
+    nodes: np.ndarray
+
+
+def pin_conflicts(pins: tuple[PinSpec, ...] | list[PinSpec], X: np.ndarray,
+                  times: tuple[float, ...] = CONFLICT_TIMES) -> list[PinConflict]:
+    """Every pair of pins that prescribe different displacements of a shared node's component.
+
+    A node held by two pins gets whichever Dirichlet value is applied last; equal motions
+    (two clamps meeting at an edge) are fine, different ones are an error of the scene. The
+    displacements ``displacement_at(X, t)`` are compared at ``times`` to within ``1e-12`` of
+    the positions' extent.
+
+    Args:
+        pins: The pins, in the scene's order.
+        X: Reference positions of the nodes, (n, 3) [m].
+        times: Times of the comparison.
+
+    """
+    X = np.asarray(X, dtype=float).reshape(-1, 3)
+    tol = 1e-12 * max(1.0, float(np.abs(X).max(initial=0.0)))
+    masks = [pin.select(X) for pin in pins]
+    out: list[PinConflict] = []
+    for i, a in enumerate(pins):
+        for j in range(i + 1, len(pins)):
+            b, shared = pins[j], np.flatnonzero(masks[i] & masks[j])
+            for k in sorted(set(a.components) & set(b.components)) if shared.size else ():
+                differ = np.zeros(shared.size, dtype=bool)
+                for t in times:
+                    diff = a.displacement_at(X[shared], t)[:, k] - b.displacement_at(
+                        X[shared], t)[:, k]
+                    differ |= np.abs(diff) > tol
+                if differ.any():
+                    out.append(PinConflict(i, j, k, shared[differ]))
+    return out
+
+
 @dataclass(frozen=True)
 class BodyOptions:
     """Discretisation, time integration, loads and boundary conditions of the body.

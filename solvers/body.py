@@ -50,7 +50,7 @@ from models.backend import (
     vector_space,
     with_facet_domains,
 )
-from models.body import NEWMARK_BETA, NEWMARK_GAMMA, BodyOptions, PinSpec
+from models.body import NEWMARK_BETA, NEWMARK_GAMMA, BodyOptions, PinSpec, pin_conflicts
 from models.contact import PenaltyContact, exterior_facets, min_cell_size, penalty_stiffness
 from models.materials import Material
 from models.quadratic import QuadraticTerm
@@ -212,6 +212,7 @@ class Body:
         """
         X = self.V.tabulate_dof_coordinates()
         owned = self.V.dofmap.index_map.size_local
+        self._refuse_conflicts(X, owned)
         bcs, constants = [], []
         self.pin_nodes: list[int] = []
         for index, pin in enumerate(self.options.pins):
@@ -227,6 +228,27 @@ class Body:
                 bcs.append(value.bc)
                 constants.append((pin, k, value, dofs))
         return bcs, constants
+
+    def _refuse_conflicts(self, X: np.ndarray, owned: int) -> None:
+        """Raise InputError on every rank if two pins move a shared node differently.
+
+        :func:`models.body.pin_conflicts` on this rank's owned nodes; the first conflict of
+        the lowest rank that has one is named.
+        """
+        found = [(c.first, c.second, c.component, X[c.nodes])
+                 for c in pin_conflicts(self.options.pins, X[:owned])]
+        everywhere = self.mesh.comm.allgather(found)
+        conflicts = [c for rank in everywhere for c in rank]
+        if not conflicts:
+            return
+        i, j, k, nodes = conflicts[0]
+        count = sum(len(n) for (a, b, c, n) in conflicts if (a, b, c) == (i, j, k))
+        extent = max(1.0, float(np.abs(X).max(initial=0.0)))
+        x, y, z = np.where(np.abs(nodes[0]) <= 1e-12 * extent, 0.0, nodes[0])  # round-off
+        raise InputError(f"body.pins[{i}] and body.pins[{j}] both hold {count} node(s) (the "
+                         f"first at ({x:.4g}, {y:.4g}, {z:.4g}) m) in component {'xyz'[k]} "
+                         "with different motions; leave the shared nodes to one pin (narrow "
+                         "its box or tol, or its components) or move them alike")
 
     def deformation_gradient(self, u: Any | None = None) -> Any:
         """``F = I + grad u`` (UFL)."""

@@ -88,6 +88,8 @@ SCENE_CASES: list[tuple[str, Any, tuple[str, ...]]] = [
     ("newton.options", {"max_it": 0}, ("max_it",)),
     ("newton.rtol", math.nan, ("newton.rtol",)),
     ("newton.options", {"linear_solver": "umfpack"}, ("linear_solver",)),
+    ("newton.options", {"petsc": {"ksp_rtoll": 1e-9}}, ("newton.options.petsc.ksp_rtoll",)),
+    ("newton.options", {"petsc": {"pc_type": "hypre"}}, ("PC type hypre",)),
     ("time.frames", 0, ("frames",)),
     ("time.end_time", 1.0, ("time.end_time", "time.frames")),        # retired key
     ("time.steps_per_frame", -2, ("steps_per_frame",)),
@@ -274,17 +276,33 @@ def test_pin_selecting_no_node_refused(tmp_path, capsys):
                    "pin", "selects no node")
 
 
+CONFLICTING_PINS = [{"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0], "tol": 1e-6},
+                    {"point": [0.0, 0.0, 0.0], "normal": [1.0, 0.0, 0.0], "tol": 1e-6,
+                     "velocity": [0.0, 0.0, 0.01]}]
+"""A clamped bottom and a side pushed up: they share the nodes of the edge x = z = 0."""
+
+
+def test_pins_moving_a_shared_node_differently_refused(tmp_path, capsys):
+    doc = set_key(base_scene(), "body.pins", CONFLICTING_PINS)
+    scene = write_scene(tmp_path, doc)
+    assert_refused(*run_cli(capsys, "run", str(scene), "--out", str(tmp_path / "out")),
+                   "body.pins[0] and body.pins[1]", "component z", "(0, 0, 0) m")
+    assert not (tmp_path / "out").exists()
+
+
 # --------------------------------------------------------------------------------------------
 # Two ranks: the same refusals end every rank (no deadlock)
 
 
 @pytest.mark.mpi
-@pytest.mark.parametrize("case", ["scene", "mesh", "resume"])
+@pytest.mark.parametrize("case", ["scene", "mesh", "resume", "pins"])
 def test_bad_input_on_two_ranks_exits_1_without_deadlock(tmp_path, mpiexec, case):
     doc = base_scene()
     extra: list[str] = []
     if case == "scene":
         set_key(doc, "material.nu", 0.5)
+    elif case == "pins":  # found on the nodes of one rank or of both
+        set_key(doc, "body.pins", CONFLICTING_PINS)
     elif case == "mesh":
         points, cells = mesh_case("vertex_nonmanifold")
         meshio.write_points_cells(tmp_path / "body.vtu", points, cells)
@@ -297,5 +315,6 @@ def test_bad_input_on_two_ranks_exits_1_without_deadlock(tmp_path, mpiexec, case
     assert proc.returncode == 1, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: "), proc.stderr
-    assert re.search({"scene": "nu", "mesh": "body.vtu", "resume": "checkpoint"}[case],
+    assert re.search({"scene": "nu", "mesh": "body.vtu", "resume": "checkpoint",
+                      "pins": r"body\.pins\[0\] and body\.pins\[1\]"}[case],
                      lines[0])

@@ -86,6 +86,19 @@ class ContactOptions:
         """Degree of the facet quadrature of the penalty (:data:`FACET_QUADRATURE`)."""
         return FACET_QUADRATURE[self.obstacle]
 
+    def gap_at(self, points: np.ndarray) -> np.ndarray:
+        """Signed gap of ``points`` ((n, 3) [m]) at t = 0: ``(x - p).n`` or ``|x - c| - r``."""
+        x = np.asarray(points, dtype=np.float64).reshape(-1, 3) - np.asarray(self.point)
+        if self.obstacle == "plane":
+            return np.asarray(x @ np.asarray(self.normal))
+        return np.asarray(np.linalg.norm(x, axis=1) - self.radius)
+
+    def describe(self) -> str:
+        """``plane through [p] with normal [n]`` or ``sphere at [c] of radius r``."""
+        if self.obstacle == "plane":
+            return f"plane through {list(self.point)} with normal {list(self.normal)}"
+        return f"sphere at {list(self.point)} of radius {self.radius:g}"
+
 
 def penalty_stiffness(stiffness: float | None, young: float, h_min: float) -> float:
     """Penalty stiffness ``k`` [Pa/m]: ``stiffness``, or ``DEFAULT_STIFFNESS_FACTOR E / h_min``.

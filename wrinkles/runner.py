@@ -337,6 +337,7 @@ def prepare_body(scene: Scene, out: Path, comm: MPI.Comm, say: Callable[[str], N
                           meshes.MeshWarning, stacklevel=2)
     stages: list[tuple[str, Stage]] = [("body", body_stage(body, scene.time.steps_per_frame))]
     run = Run(scene, out, body, stages)
+    check_obstacles_clear(body, scene, comm.rank == 0)
     if scene.rigid is not None and scene.rigid.balls:
         check_balls_outside(body, scene)
         run.rigid = BallCoupling(body, scene.rigid.internals, len(scene.body.contacts))
@@ -361,6 +362,38 @@ def stage_logger(log: Callable[[str], None] | None) -> Callable[[str], None]:
         last[0] = now
 
     return say
+
+
+def check_obstacles_clear(body: Body, scene: Scene, warn: bool = True) -> None:
+    """Refuse an obstacle the body starts deeper inside than a mean cell; warn for less.
+
+    The gap of every node at t = 0 (:meth:`models.contact.ContactOptions.gap_at`); a body
+    starting inside an obstacle is shoved out by the penalty in the first step. Collective;
+    ``warn`` on one rank.
+
+    Raises:
+        InputError: naming ``body.contacts[i]``, the depth and the mean cell size.
+
+    """
+    mesh = body.mesh
+    X = body.V.tabulate_dof_coordinates()[: body.V.dofmap.index_map.size_local]
+    cells = np.arange(mesh.topology.index_map(3).size_local, dtype=np.int32)
+    sizes = mesh.h(3, cells) if cells.size else np.zeros(0)
+    h_mean = (mesh.comm.allreduce(float(sizes.sum()), op=MPI.SUM)
+              / max(mesh.comm.allreduce(int(sizes.size), op=MPI.SUM), 1))
+    for index, contact in enumerate(scene.body.contacts):
+        gaps = contact.gap_at(X)
+        depth = mesh.comm.allreduce(float(max(-gaps.min(initial=0.0), 0.0)), op=MPI.MAX)
+        count = mesh.comm.allreduce(int(np.count_nonzero(gaps < 0.0)), op=MPI.SUM)
+        where = f"body.contacts[{index}] ({contact.describe()})"
+        if depth > h_mean:
+            raise InputError(f"{where}: the body starts up to {depth:.4g} m inside it ({count} "
+                             f"node(s)), more than a mean cell ({h_mean:.3g} m): move the "
+                             "obstacle or the mesh (or turn the normal to the body's side)")
+        if depth > 0.0 and warn:
+            warnings.warn(f"{where}: {count} node(s) of the body start inside it, up to "
+                          f"{depth:.3g} m deep: the penalty pushes them out in the first step",
+                          meshes.MeshWarning, stacklevel=2)
 
 
 def check_balls_outside(body: Body, scene: Scene) -> None:

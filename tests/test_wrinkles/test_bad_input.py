@@ -318,3 +318,25 @@ def test_bad_input_on_two_ranks_exits_1_without_deadlock(tmp_path, mpiexec, case
     assert re.search({"scene": "nu", "mesh": "body.vtu", "resume": "checkpoint",
                       "pins": r"body\.pins\[0\] and body\.pins\[1\]"}[case],
                      lines[0])
+
+
+@pytest.mark.parametrize(("floor", "refused"), [(0.08, True), (0.01, False)])
+def test_a_body_starting_inside_an_obstacle(tmp_path, capsys, floor, refused):
+    """The base cube (z in [0, 0.1], cells of about 0.07 m) with a floor at z = ``floor``:
+    deeper than a mean cell is refused before anything is written; shallower is run with a
+    warning naming the obstacle and the depth."""
+    doc = set_key(base_scene(), "body.contacts",
+                  [{"obstacle": "plane", "point": [0.0, 0.0, floor], "normal": [0.0, 0.0, 1.0]}])
+    set_key(doc, "body.pins", ...)
+    set_key(doc, "body.dynamics", "implicit_euler")
+    set_key(doc, "body.dt", 1e-3)
+    scene = write_scene(tmp_path, doc)
+    out = tmp_path / "out"
+    if refused:
+        assert_refused(*run_cli(capsys, "run", str(scene), "--out", str(out)),
+                       "body.contacts[0] (plane through [0.0, 0.0, 0.08]", "0.08 m inside it")
+        assert not out.exists()
+        return
+    with pytest.warns(UserWarning, match=r"body\.contacts\[0\].*start inside it, up to 0\.01 m"):
+        code, err = run_cli(capsys, "run", str(scene), "--out", str(out))
+    assert code == 0, err

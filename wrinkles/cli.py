@@ -108,6 +108,8 @@ def command_run(args: argparse.Namespace) -> int:
         return 0
     run = prepare(scene, out, comm, restart=args.resume, overwrite=args.overwrite,
                   log=lambda line: print(line, flush=True))
+    if len(run.records) >= run.n_frames and comm.rank == 0:
+        print(f"{out}: all {run.n_frames} frames are done already", flush=True)
     try:
         with frame_progress(run.n_frames - len(run.records), comm.size) as log:
             run_frames(run, log=log)

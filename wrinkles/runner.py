@@ -542,10 +542,15 @@ def previous_run(run: Run, frame: int) -> tuple[list[FrameRecord], dict[str, Any
     """Read ``summary.json`` of the run being restarted: its first ``frame`` records and facts.
 
     Raises:
-        InputError: the summary is missing, or the scene changed (but time, output, newton).
+        InputError: the checkpoint holds more frames than the scene asks for, the summary is
+            missing, or the scene changed (but time, output, newton).
 
     """
     path = run.out / SUMMARY_NAME
+    if frame > run.n_frames:
+        raise InputError(f"--resume: {run.out} already holds {frame} frames, more than the "
+                         f"{run.n_frames} asked (ask for {frame} or more, or --overwrite to "
+                         "start again)")
     try:
         summary = json.loads(path.read_text())
     except (OSError, ValueError) as exc:

@@ -121,6 +121,23 @@ def test_restart_refuses_what_it_cannot_continue(tmp_path, setup, extra, pattern
     assert re.match(pattern, proc.stderr), proc.stderr
 
 
+def test_restart_of_a_finished_run_says_so_and_one_past_it_is_refused(tmp_path):
+    """Resuming a run for the frames it holds runs nothing and says so; for fewer frames than
+    it holds it is refused, and the run on disk stays as it was."""
+    out = tmp_path / "out"
+    run_ok("--frames", "3", "--out", str(out))
+    before = (out / "summary.json").read_text()
+    stdout = run_ok("--frames", "3", "--out", str(out), "--restart")
+    assert progress_lines(stdout) == [] and f"{out}: all 3 frames are done already" in stdout
+    proc = wrinkles("run", str(DEFAULT), "--frames", "2", "--out", str(out), "--restart")
+    assert proc.returncode == 1 and proc.stderr.count("\n") == 1, proc.stderr
+    assert re.match(r"^error: --resume: .* already holds 3 frames, more than the 2 asked",
+                    proc.stderr), proc.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(summary["frames"]) == 3 and summary["run"]["frames_planned"] == 3
+    assert json.loads(before)["frames"] == summary["frames"]
+
+
 def test_first_difference_names_the_dotted_key():
     from wrinkles.runner import first_difference
 

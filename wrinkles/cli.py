@@ -94,7 +94,7 @@ def command_run(args: argparse.Namespace) -> int:
     """Load the scene, apply ``--frames`` and ``--set``, run it (collective)."""
     from models.backend import MPI
     from wrinkles.overlap import choose_layout, run_overlapped
-    from wrinkles.runner import prepare, record_failure, run_frames
+    from wrinkles.runner import prepare, record_failure, report_done, run_frames
     from wrinkles.scene import load_scene, with_frames
 
     scene = load_scene(args.scene, args.overrides)
@@ -108,8 +108,7 @@ def command_run(args: argparse.Namespace) -> int:
         return 0
     run = prepare(scene, out, comm, restart=args.resume, overwrite=args.overwrite,
                   log=lambda line: print(line, flush=True))
-    if len(run.records) >= run.n_frames and comm.rank == 0:
-        print(f"{out}: all {run.n_frames} frames are done already", flush=True)
+    report_done(run, lambda line: print(line, flush=True))
     try:
         with frame_progress(run.n_frames - len(run.records), comm.size) as log:
             run_frames(run, log=log)

@@ -52,6 +52,7 @@ from wrinkles.runner import (
     read_tet_mesh,
     record_failure,
     render_if_asked,
+    report_done,
     run_frames,
     write_summary,
 )
@@ -187,6 +188,7 @@ def run_overlapped(scene: Scene, out: Path, comm: MPI.Comm, restart: bool = Fals
         log("layout: the body on rank 1, the shell and the output on rank 0, their stages "
             "overlapped (shell.solver.layout)")
         run = agreed(comm, lambda: prepare(scene, out, MPI.COMM_SELF, restart, overwrite, log))
+        report_done(run, log)
         ShellSide(comm, run, restart).frames(log)
         return run
     with warnings.catch_warnings():

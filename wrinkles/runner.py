@@ -728,6 +728,12 @@ def write_summary(run: Run) -> None:
         write_json_atomic(run.out / SUMMARY_NAME, document)
 
 
+def report_done(run: Run, log: Callable[[str], None] = print) -> None:
+    """Say so (rank 0) when a resumed run already holds every frame asked for."""
+    if len(run.records) >= run.n_frames and run.comm.rank == 0:
+        log(f"{run.out}: all {run.n_frames} frames are done already")
+
+
 def run_frames(run: Run, log: Callable[[str], None] = print, render: bool = True) -> Run:
     """Run every frame of a prepared run; rank 0 passes one progress line per frame to ``log``.
 

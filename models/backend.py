@@ -52,6 +52,7 @@ def begin_petsc_log() -> None:
 
 begin_petsc_log()
 
+
 def set_from_options(solver: Any, options: Mapping[str, Any]) -> None:
     """Set ``options`` under ``solver``'s prefix and call its ``setFromOptions``.
 

@@ -504,7 +504,7 @@ class EnergyNewton:
             return NewtonResult(False, 0, 0, math.nan, math.inf, start)
         self._last_step, self._ls_failed = 1.0, False
         self.problem.solve()
-        if self._unchecked:  # the factor's options are read at its first set-up
+        if self._unchecked and snes.getIterationNumber() > 0:  # read at the factor's set-up
             try:
                 self._unchecked = unread_options(self._prefix, self._unchecked, factor=True)
             except InputError:

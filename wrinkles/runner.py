@@ -367,12 +367,13 @@ def stage_logger(log: Callable[[str], None] | None) -> Callable[[str], None]:
 def check_obstacles_clear(body: Body, scene: Scene, warn: bool = True) -> None:
     """Refuse an obstacle the body starts deeper inside than a mean cell; warn for less.
 
-    The gap of every node at t = 0 (:meth:`models.contact.ContactOptions.gap_at`); a body
-    starting inside an obstacle is shoved out by the penalty in the first step. Collective;
-    ``warn`` on one rank.
+    The obstacles of ``body.contacts`` and the rigid balls' spheres; the gap of every node at
+    t = 0 (:meth:`models.contact.ContactOptions.gap_at`): a body starting inside an obstacle
+    is shoved out by the penalty in the first step. Collective; ``warn`` on one rank.
 
     Raises:
-        InputError: naming ``body.contacts[i]``, the depth and the mean cell size.
+        InputError: naming ``body.contacts[i]`` or ``rigid.balls[i]``, the depth and the mean
+            cell size.
 
     """
     mesh = body.mesh
@@ -381,11 +382,14 @@ def check_obstacles_clear(body: Body, scene: Scene, warn: bool = True) -> None:
     sizes = mesh.h(3, cells) if cells.size else np.zeros(0)
     h_mean = (mesh.comm.allreduce(float(sizes.sum()), op=MPI.SUM)
               / max(mesh.comm.allreduce(int(sizes.size), op=MPI.SUM), 1))
-    for index, contact in enumerate(scene.body.contacts):
+    balls = scene.rigid.balls if scene.rigid is not None else ()
+    obstacles = [(f"body.contacts[{i}]", c) for i, c in enumerate(scene.body.contacts)]
+    obstacles += [(f"rigid.balls[{i}]", ball.contact()) for i, ball in enumerate(balls)]
+    for name, contact in obstacles:
         gaps = contact.gap_at(X)
         depth = mesh.comm.allreduce(float(max(-gaps.min(initial=0.0), 0.0)), op=MPI.MAX)
         count = mesh.comm.allreduce(int(np.count_nonzero(gaps < 0.0)), op=MPI.SUM)
-        where = f"body.contacts[{index}] ({contact.describe()})"
+        where = f"{name} ({contact.describe()})"
         if depth > h_mean:
             raise InputError(f"{where}: the body starts up to {depth:.4g} m inside it ({count} "
                              f"node(s)), more than a mean cell ({h_mean:.3g} m): move the "

@@ -320,23 +320,35 @@ def test_bad_input_on_two_ranks_exits_1_without_deadlock(tmp_path, mpiexec, case
                      lines[0])
 
 
-@pytest.mark.parametrize(("floor", "refused"), [(0.08, True), (0.01, False)])
-def test_a_body_starting_inside_an_obstacle(tmp_path, capsys, floor, refused):
-    """The base cube (z in [0, 0.1], cells of about 0.07 m) with a floor at z = ``floor``:
-    deeper than a mean cell is refused before anything is written; shallower is run with a
-    warning naming the obstacle and the depth."""
-    doc = set_key(base_scene(), "body.contacts",
-                  [{"obstacle": "plane", "point": [0.0, 0.0, floor], "normal": [0.0, 0.0, 1.0]}])
-    set_key(doc, "body.pins", ...)
+@pytest.mark.parametrize(("obstacle", "depth", "refused"), [
+    ("body.contacts[0] (plane through [0.0, 0.0, 0.08]", "0.08", True),
+    ("body.contacts[0] (plane through [0.0, 0.0, 0.01]", "0.01", False),
+    ("rigid.balls[0] (sphere at [0.05, 0.05, 0.16] of radius 0.15", "0.08745", True),
+    ("rigid.balls[0] (sphere at [0.05, 0.05, 0.2] of radius 0.12", "0.0184", False),
+])
+def test_a_body_starting_inside_an_obstacle(tmp_path, capsys, obstacle, depth, refused):
+    """The base cube (z in [0, 0.1], mean cell 0.058 m) with a floor or a ball's sphere
+    reaching ``depth`` into it at its nodes (the sphere's nearest node lies 0.0626 m from its
+    centre): deeper than a mean cell is refused before anything is written; shallower is
+    run with a warning naming the obstacle and the depth."""
+    doc = set_key(base_scene(), "body.pins", ...)
     set_key(doc, "body.dynamics", "implicit_euler")
     set_key(doc, "body.dt", 1e-3)
+    if obstacle.startswith("body"):
+        floor = float(depth)
+        set_key(doc, "body.contacts", [{"obstacle": "plane", "point": [0.0, 0.0, floor],
+                                        "normal": [0.0, 0.0, 1.0]}])
+    else:
+        center, radius = ([0.05, 0.05, 0.16], 0.15) if refused else ([0.05, 0.05, 0.2], 0.12)
+        set_key(doc, "rigid.balls", [{"radius": radius, "mass": 1.0, "center": center,
+                                      "velocity": [0.0, 0.0, 0.0]}])
     scene = write_scene(tmp_path, doc)
     out = tmp_path / "out"
     if refused:
         assert_refused(*run_cli(capsys, "run", str(scene), "--out", str(out)),
-                       "body.contacts[0] (plane through [0.0, 0.0, 0.08]", "0.08 m inside it")
+                       obstacle, f"{depth} m inside it")
         assert not out.exists()
         return
-    with pytest.warns(UserWarning, match=r"body\.contacts\[0\].*start inside it, up to 0\.01 m"):
+    with pytest.warns(UserWarning, match=re.escape(obstacle) + f".*start inside it, up to {depth}"):
         code, err = run_cli(capsys, "run", str(scene), "--out", str(out))
     assert code == 0, err

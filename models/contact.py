@@ -153,12 +153,25 @@ class BoundaryTriangles:
         return np.asarray(self.rest + np.asarray(u).reshape(-1, 3)[self.dofs])
 
 
-def min_cell_size(mesh: Any) -> float:
-    """Smallest cell diameter of ``mesh`` over all ranks [m]."""
+def _cell_sizes(mesh: Any) -> np.ndarray:
+    """Diameters of this rank's owned cells of ``mesh`` [m]."""
     tdim = mesh.topology.dim
     cells = np.arange(mesh.topology.index_map(tdim).size_local, dtype=np.int32)
-    local = float(np.min(mesh.h(tdim, cells))) if cells.size else math.inf
+    return np.asarray(mesh.h(tdim, cells)) if cells.size else np.zeros(0)
+
+
+def min_cell_size(mesh: Any) -> float:
+    """Smallest cell diameter of ``mesh`` over all ranks [m]."""
+    sizes = _cell_sizes(mesh)
+    local = float(sizes.min()) if sizes.size else math.inf
     return float(mesh.comm.allreduce(local, op=MPI.MIN))
+
+
+def mean_cell_size(mesh: Any) -> float:
+    """Mean cell diameter of ``mesh`` over all ranks [m]."""
+    sizes = _cell_sizes(mesh)
+    total = mesh.comm.allreduce(float(sizes.sum()), op=MPI.SUM)
+    return float(total / max(mesh.comm.allreduce(int(sizes.size), op=MPI.SUM), 1))
 
 
 class PenaltyContact:

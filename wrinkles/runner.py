@@ -56,6 +56,7 @@ from meshes.errors import InputError, SolverError
 from meshes.report import mesh_report
 from meshes.tetmesh import TetMesh
 from models.backend import MPI, dolfinx, mesh_from_arrays
+from models.contact import mean_cell_size
 from models.embedding.embedding import affine_maps, min_barycentric
 from models.rigid import RigidStepInfo
 from solvers.body import Body, StepReport
@@ -378,10 +379,7 @@ def check_obstacles_clear(body: Body, scene: Scene, warn: bool = True) -> None:
     """
     mesh = body.mesh
     X = body.V.tabulate_dof_coordinates()[: body.V.dofmap.index_map.size_local]
-    cells = np.arange(mesh.topology.index_map(3).size_local, dtype=np.int32)
-    sizes = mesh.h(3, cells) if cells.size else np.zeros(0)
-    h_mean = (mesh.comm.allreduce(float(sizes.sum()), op=MPI.SUM)
-              / max(mesh.comm.allreduce(int(sizes.size), op=MPI.SUM), 1))
+    h_mean = mean_cell_size(mesh)
     balls = scene.rigid.balls if scene.rigid is not None else ()
     obstacles = [(f"body.contacts[{i}]", c) for i, c in enumerate(scene.body.contacts)]
     obstacles += [(f"rigid.balls[{i}]", ball.contact()) for i, ball in enumerate(balls)]

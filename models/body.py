@@ -7,6 +7,7 @@ incremental potential built from them and its time stepping are in :mod:`solvers
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -168,6 +169,40 @@ def pin_conflicts(pins: tuple[PinSpec, ...] | list[PinSpec], X: np.ndarray,
                 if differ.any():
                     out.append(PinConflict(i, j, k, shared[differ]))
     return out
+
+
+def refuse_empty_pins(pins: Sequence[PinSpec], counts: Sequence[int]) -> None:
+    """Raise InputError naming the first pin that holds no node (``counts``: nodes per pin)."""
+    for index, (pin, count) in enumerate(zip(pins, counts, strict=True)):
+        if count == 0:
+            raise InputError(f"body.pins[{index}]: selects no node of the mesh ({pin})")
+
+
+def refuse_pin_conflicts(found: Sequence[tuple[int, int, int, np.ndarray]],
+                         extent: float) -> None:
+    """Raise InputError naming the first conflict of ``found``; nothing when it is empty.
+
+    Args:
+        found: ``(first, second, component, positions)`` per conflict
+            (:func:`pin_conflicts`, the shared nodes' reference positions (m, 3) [m]),
+            gathered from every rank.
+        extent: Largest absolute coordinate of the mesh [m]: coordinates within ``1e-12`` of
+            it are printed as 0.
+
+    Raises:
+        InputError: naming ``body.pins[i]`` and ``body.pins[j]``, the component, how many
+            nodes they share there and the first node's position.
+
+    """
+    if not found:
+        return
+    i, j, k, nodes = found[0]
+    count = sum(len(n) for (a, b, c, n) in found if (a, b, c) == (i, j, k))
+    x, y, z = np.where(np.abs(nodes[0]) <= 1e-12 * max(1.0, extent), 0.0, nodes[0])
+    raise InputError(f"body.pins[{i}] and body.pins[{j}] both hold {count} node(s) (the first "
+                     f"at ({x:.4g}, {y:.4g}, {z:.4g}) m) in component {'xyz'[k]} with "
+                     "different motions; leave the shared nodes to one pin (narrow its box or "
+                     "tol, or its components) or move them alike")
 
 
 @dataclass(frozen=True)

@@ -93,6 +93,20 @@ class ContactOptions:
             return np.asarray(x @ np.asarray(self.normal))
         return np.asarray(np.linalg.norm(x, axis=1) - self.radius)
 
+    def start_depth(self, points: np.ndarray) -> tuple[float, int]:
+        """Deepest of ``points`` inside the obstacle at t = 0 [m], and how many are inside.
+
+        A gap within round-off of zero (``1e-12`` of the largest coordinate, radius or
+        obstacle point, at least of 1 m) counts as touching, not inside: a mesh whose bottom
+        lies on the floor's plane starts clear of it.
+        """
+        x = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        gaps = self.gap_at(x)
+        scale = max(1.0, float(np.abs(x).max(initial=0.0)), float(np.abs(self.point).max()),
+                    self.radius if self.obstacle == "sphere" else 0.0)
+        inside = gaps < -1e-12 * scale
+        return (float(-gaps[inside].min()) if inside.any() else 0.0, int(inside.sum()))
+
     def describe(self) -> str:
         """``plane through [p] with normal [n]`` or ``sphere at [c] of radius r``."""
         if self.obstacle == "plane":

@@ -50,7 +50,15 @@ from models.backend import (
     vector_space,
     with_facet_domains,
 )
-from models.body import NEWMARK_BETA, NEWMARK_GAMMA, BodyOptions, PinSpec, pin_conflicts
+from models.body import (
+    NEWMARK_BETA,
+    NEWMARK_GAMMA,
+    BodyOptions,
+    PinSpec,
+    pin_conflicts,
+    refuse_empty_pins,
+    refuse_pin_conflicts,
+)
 from models.contact import PenaltyContact, exterior_facets, min_cell_size, penalty_stiffness
 from models.materials import Material
 from models.quadratic import QuadraticTerm
@@ -214,14 +222,12 @@ class Body:
         owned = self.V.dofmap.index_map.size_local
         self._refuse_conflicts(X, owned)
         bcs, constants = [], []
-        self.pin_nodes: list[int] = []
-        for index, pin in enumerate(self.options.pins):
-            nodes = np.flatnonzero(pin.select(X)).astype(np.int32)
-            count = int(self.mesh.comm.allreduce(int(np.count_nonzero(nodes < owned)),
-                                                 op=MPI.SUM))
-            if count == 0:
-                raise InputError(f"body.pins[{index}]: selects no node of the mesh ({pin})")
-            self.pin_nodes.append(count)
+        selected = [np.flatnonzero(pin.select(X)).astype(np.int32) for pin in self.options.pins]
+        self.pin_nodes: list[int] = [
+            int(self.mesh.comm.allreduce(int(np.count_nonzero(nodes < owned)), op=MPI.SUM))
+            for nodes in selected]
+        refuse_empty_pins(self.options.pins, self.pin_nodes)
+        for pin, nodes in zip(self.options.pins, selected, strict=True):
             for k in pin.components:
                 dofs = (3 * nodes + k).astype(np.int32)
                 value = _PinValue(self.mesh, self.V, pin, k, dofs, X[nodes])
@@ -238,17 +244,9 @@ class Body:
         found = [(c.first, c.second, c.component, X[c.nodes])
                  for c in pin_conflicts(self.options.pins, X[:owned])]
         everywhere = self.mesh.comm.allgather(found)
-        conflicts = [c for rank in everywhere for c in rank]
-        if not conflicts:
-            return
-        i, j, k, nodes = conflicts[0]
-        count = sum(len(n) for (a, b, c, n) in conflicts if (a, b, c) == (i, j, k))
-        extent = max(1.0, float(np.abs(X).max(initial=0.0)))
-        x, y, z = np.where(np.abs(nodes[0]) <= 1e-12 * extent, 0.0, nodes[0])  # round-off
-        raise InputError(f"body.pins[{i}] and body.pins[{j}] both hold {count} node(s) (the "
-                         f"first at ({x:.4g}, {y:.4g}, {z:.4g}) m) in component {'xyz'[k]} "
-                         "with different motions; leave the shared nodes to one pin (narrow "
-                         "its box or tol, or its components) or move them alike")
+        refuse_pin_conflicts([c for rank in everywhere for c in rank],
+                             self.mesh.comm.allreduce(float(np.abs(X).max(initial=0.0)),
+                                                      op=MPI.MAX))
 
     def deformation_gradient(self, u: Any | None = None) -> Any:
         """``F = I + grad u`` (UFL)."""

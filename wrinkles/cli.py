@@ -155,8 +155,10 @@ def frame_progress(frames: int, ranks: int) -> Iterator[Callable[[str], None]]:
 def command_check(args: argparse.Namespace) -> int:
     """Validate the scene and its mesh; print the scene and the values the run will use (JSON).
 
-    The mesh is built or read and validated, the shell's surface subdivided and its
-    stiffnesses, cluster sizing and memory estimate computed (no dolfinx body, no solve).
+    The mesh is built or read and validated, the set-up checks that need only the mesh run
+    (pins, obstacles, balls: :func:`wrinkles.runner.check_mesh_set_up`), the shell's surface
+    subdivided and its stiffnesses, cluster sizing and memory estimate computed (no dolfinx
+    body, no solve).
     """
     from models.backend import MPI
     from models.embedding.caps import flip_caps
@@ -164,7 +166,7 @@ def command_check(args: argparse.Namespace) -> int:
     from solvers.solver_choice import choose_joint_split
     from wrinkles.output import json_text
     from wrinkles.overlap import layout_for, scene_sizes
-    from wrinkles.runner import read_tet_mesh
+    from wrinkles.runner import check_mesh_set_up, read_tet_mesh
     from wrinkles.scene import load_scene, scene_dict
     from wrinkles.shell_setup import shell_report
 
@@ -173,7 +175,8 @@ def command_check(args: argparse.Namespace) -> int:
         return 0
     mesh = read_tet_mesh(scene.mesh)
     resolved: dict[str, Any] = {"mesh": {"source": mesh.source, "points": int(mesh.n_points),
-                                         "tets": int(mesh.n_tets)},
+                                         "tets": int(mesh.n_tets),
+                                         **check_mesh_set_up(scene, mesh)},
                                 "newton": dataclasses.asdict(scene.newton.internals)}
     if scene.rigid is not None:
         resolved["rigid"] = dataclasses.asdict(scene.rigid.internals.coupling)

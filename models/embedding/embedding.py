@@ -207,9 +207,13 @@ class AffineMaps:
 
 def affine_maps(mesh: Any) -> AffineMaps:
     """Pre-compute origin and inverse Jacobian of every local cell (P1 geometry)."""
-    verts = mesh.geometry.x[mesh.geometry.dofmaps[0]]
-    jac = np.transpose(verts[:, 1:] - verts[:, :1], (0, 2, 1))
-    return AffineMaps(origin=np.ascontiguousarray(verts[:, 0]), inverse=np.linalg.inv(jac))
+    return affine_maps_of(mesh.geometry.x[mesh.geometry.dofmaps[0]])
+
+
+def affine_maps_of(corners: FloatArray) -> AffineMaps:
+    """Return the affine maps of tetrahedra given by their ``(n_cells, 4, 3)`` corners."""
+    jac = np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1))
+    return AffineMaps(origin=np.ascontiguousarray(corners[:, 0]), inverse=np.linalg.inv(jac))
 
 
 def min_barycentric(ref: FloatArray) -> FloatArray:

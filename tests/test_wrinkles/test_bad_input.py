@@ -269,11 +269,17 @@ def test_inverted_mesh_is_repaired_with_a_warning_and_runs(tmp_path, capsys):
     assert results[0]["min_det_f"] < 1.0  # it did deform: sag under gravity
 
 
-def test_pin_selecting_no_node_refused(tmp_path, capsys):
+def command(name: str, scene: Path, out: Path) -> list[str]:
+    """argv of ``wrinkles run SCENE --out OUT`` or ``wrinkles check SCENE``."""
+    return ["run", str(scene), "--out", str(out)] if name == "run" else ["check", str(scene)]
+
+
+@pytest.mark.parametrize("name", ["run", "check"])
+def test_pin_selecting_no_node_refused(tmp_path, capsys, name):
     doc = set_key(base_scene(), "body.pins", [{"point": [0.0, 0.0, 5.0]}])
     scene = write_scene(tmp_path, doc)
-    assert_refused(*run_cli(capsys, "run", str(scene), "--out", str(tmp_path / "out")),
-                   "pin", "selects no node")
+    assert_refused(*run_cli(capsys, *command(name, scene, tmp_path / "out")),
+                   "body.pins[0]", "selects no node")
 
 
 CONFLICTING_PINS = [{"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0], "tol": 1e-6},
@@ -282,12 +288,34 @@ CONFLICTING_PINS = [{"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0], "tol":
 """A clamped bottom and a side pushed up: they share the nodes of the edge x = z = 0."""
 
 
-def test_pins_moving_a_shared_node_differently_refused(tmp_path, capsys):
+@pytest.mark.parametrize("name", ["run", "check"])
+def test_pins_moving_a_shared_node_differently_refused(tmp_path, capsys, name):
+    """The run (on the body's nodes) and ``check`` (on the mesh's vertices): 3 shared nodes."""
     doc = set_key(base_scene(), "body.pins", CONFLICTING_PINS)
     scene = write_scene(tmp_path, doc)
-    assert_refused(*run_cli(capsys, "run", str(scene), "--out", str(tmp_path / "out")),
-                   "body.pins[0] and body.pins[1]", "component z", "(0, 0, 0) m")
+    assert_refused(*run_cli(capsys, *command(name, scene, tmp_path / "out")),
+                   "body.pins[0] and body.pins[1] both hold 3 node(s)", "component z",
+                   "(0, 0, 0) m")
     assert not (tmp_path / "out").exists()
+
+
+def test_check_reports_the_vertices_each_pin_holds(tmp_path, capsys):
+    """The base cube (12 vertices on a face): the faces z = 0 and x = 0 held alike, and a
+    pin of one vertex, warned about as the run warns; the counts are the run's (P1)."""
+    pins = [CONFLICTING_PINS[0], {**CONFLICTING_PINS[1], "velocity": [0.0, 0.0, 0.0]},
+            {"box": [[0.09, 0.09, 0.09], [0.11, 0.11, 0.11]]}]
+    scene = write_scene(tmp_path, set_key(base_scene(), "body.pins", pins))
+    with pytest.warns(UserWarning, match=re.escape("body.pins[2]: holds only 1 node(s)")):
+        code = cli.main(["check", str(scene)])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    resolved = json.loads(captured.out)["resolved"]
+    assert resolved["mesh"]["pin_nodes"] == [12, 12, 1]
+    with pytest.warns(UserWarning, match=re.escape("body.pins[2]: holds only 1 node(s)")):
+        code = cli.main(["run", str(scene), "--out", str(tmp_path / "out")])
+    assert code == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["run"]["pin_nodes"] == [12, 12, 1]
 
 
 # --------------------------------------------------------------------------------------------
@@ -320,17 +348,18 @@ def test_bad_input_on_two_ranks_exits_1_without_deadlock(tmp_path, mpiexec, case
                      lines[0])
 
 
+@pytest.mark.parametrize("name", ["run", "check"])
 @pytest.mark.parametrize(("obstacle", "depth", "refused"), [
     ("body.contacts[0] (plane through [0.0, 0.0, 0.08]", "0.08", True),
     ("body.contacts[0] (plane through [0.0, 0.0, 0.01]", "0.01", False),
     ("rigid.balls[0] (sphere at [0.05, 0.05, 0.16] of radius 0.15", "0.08745", True),
     ("rigid.balls[0] (sphere at [0.05, 0.05, 0.2] of radius 0.12", "0.0184", False),
 ])
-def test_a_body_starting_inside_an_obstacle(tmp_path, capsys, obstacle, depth, refused):
+def test_a_body_starting_inside_an_obstacle(tmp_path, capsys, obstacle, depth, refused, name):
     """The base cube (z in [0, 0.1], mean cell 0.058 m) with a floor or a ball's sphere
     reaching ``depth`` into it at its nodes (the sphere's nearest node lies 0.0626 m from its
     centre): deeper than a mean cell is refused before anything is written; shallower is
-    run with a warning naming the obstacle and the depth."""
+    run with a warning naming the obstacle and the depth. ``wrinkles check`` says the same."""
     doc = set_key(base_scene(), "body.pins", ...)
     set_key(doc, "body.dynamics", "implicit_euler")
     set_key(doc, "body.dt", 1e-3)
@@ -345,10 +374,37 @@ def test_a_body_starting_inside_an_obstacle(tmp_path, capsys, obstacle, depth, r
     scene = write_scene(tmp_path, doc)
     out = tmp_path / "out"
     if refused:
-        assert_refused(*run_cli(capsys, "run", str(scene), "--out", str(out)),
+        assert_refused(*run_cli(capsys, *command(name, scene, out)),
                        obstacle, f"{depth} m inside it")
         assert not out.exists()
         return
     with pytest.warns(UserWarning, match=re.escape(obstacle) + f".*start inside it, up to {depth}"):
-        code, err = run_cli(capsys, "run", str(scene), "--out", str(out))
+        code, err = run_cli(capsys, *command(name, scene, out))
     assert code == 0, err
+
+
+@pytest.mark.parametrize("name", ["run", "check"])
+def test_a_body_resting_on_the_floor_within_round_off_starts_clear(tmp_path, capsys, name):
+    """A floor 1e-17 m above the cube's bottom z = 0 (the round-off of a mesh file's
+    coordinates): touching, no warning."""
+    doc = set_key(base_scene(), "body.pins", ...)
+    set_key(doc, "body.dynamics", "implicit_euler")
+    set_key(doc, "body.dt", 1e-3)
+    set_key(doc, "body.contacts", [{"obstacle": "plane", "point": [0.0, 0.0, 1e-17],
+                                    "normal": [0.0, 0.0, 1.0]}])
+    scene = write_scene(tmp_path, doc)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code, err = run_cli(capsys, *command(name, scene, tmp_path / "out"))
+    assert code == 0, err
+    assert not [w for w in caught if "inside it" in str(w.message)]
+
+
+@pytest.mark.parametrize("name", ["run", "check"])
+def test_a_ball_centred_inside_the_body_refused(tmp_path, capsys, name):
+    doc = set_key(base_scene(), "body.pins", ...)
+    set_key(doc, "body.dynamics", "implicit_euler")
+    set_key(doc, "rigid.balls", [{"radius": 0.01, "mass": 1.0, "center": [0.05, 0.04, 0.03]}])
+    scene = write_scene(tmp_path, doc)
+    assert_refused(*run_cli(capsys, *command(name, scene, tmp_path / "out")),
+                   "rigid.balls[0].center = [0.05, 0.04, 0.03]: inside the body")

@@ -156,7 +156,7 @@ def command_check(args: argparse.Namespace) -> int:
     """Validate the scene and its mesh; print the scene and the values the run will use (JSON).
 
     The mesh is built or read and validated, the set-up checks that need only the mesh run
-    (pins, obstacles, balls: :func:`wrinkles.runner.check_mesh_set_up`), the shell's surface
+    (pins, obstacles, balls: :func:`wrinkles.set_up_checks.check_mesh_set_up`), the shell's surface
     subdivided and its stiffnesses, cluster sizing and memory estimate computed (no dolfinx
     body, no solve).
     """
@@ -166,8 +166,9 @@ def command_check(args: argparse.Namespace) -> int:
     from solvers.solver_choice import choose_joint_split
     from wrinkles.output import json_text
     from wrinkles.overlap import layout_for, scene_sizes
-    from wrinkles.runner import check_mesh_set_up, read_tet_mesh
+    from wrinkles.runner import read_tet_mesh
     from wrinkles.scene import load_scene, scene_dict
+    from wrinkles.set_up_checks import check_mesh_set_up
     from wrinkles.shell_setup import shell_report
 
     scene = load_scene(args.scene, args.overrides)

@@ -406,6 +406,20 @@ class Body:
             if solver is not None:
                 solver.set_quadratic_term(term)
 
+    def linear_facts(self) -> dict[str, Any]:
+        """How the Newton systems of the body's steps are solved (:mod:`solvers.body_linear`).
+
+        ``method`` (``"direct"`` or ``"iterative"``); for the latter the CG solves, their
+        iterations and the steps the LU solved where CG failed, over this process's run.
+        """
+        solver = self._dynamic_solver or self._static_solver
+        facts: dict[str, Any] = {"method": solver.linear_method}
+        if solver.iterative is not None:
+            facts.update(cg_solves=solver.iterative.solves,
+                         cg_iterations=solver.iterative.cg_iterations,
+                         lu_fallbacks=solver.iterative.fallbacks)
+        return facts
+
     def set_interface_force(self, F: Any | None) -> None:
         """Record the nodal force ``F`` (Function on ``V``) another model exerts outside ``Pi``.
 

@@ -2,7 +2,9 @@
 
 The body's discrete problem is the minimisation of one energy ``Pi(u)`` (a UFL form, see
 ``models/body.py``): the residual is ``dPi/du`` and the Jacobian ``d^2 Pi/du^2``, both from
-``ufl.derivative``. SNES (``newtonls``) runs Newton with MUMPS LU for the linear solves.
+``ufl.derivative``. SNES (``newtonls``) runs Newton with the MUMPS LU for the linear solves,
+or CG + GAMG once the first factorisation showed the LU too costly
+(``NewtonOptions.method``, :mod:`solvers.body_linear`).
 
 Line search (``NewtonOptions.line_search_type``):
 
@@ -60,6 +62,7 @@ from models.backend import (
     with_facet_domains,
 )
 from models.quadratic import QuadraticTerm
+from solvers.body_linear import IterativeBodySolve, choose_body_method
 
 _COUNTER = itertools.count()
 
@@ -86,6 +89,11 @@ class NewtonOptions:
             and retried before ``SolverError`` is raised.
         linear_solver: Direct solver package for the Newton systems: ``"mumps"`` or
             ``"superlu_dist"`` (LU, in the wheel).
+        method: ``"auto"`` (the MUMPS LU, replaced by CG + GAMG after the first
+            factorisation if it cost more than :data:`solvers.body_linear.ITERATIVE_FLOPS`),
+            ``"direct"`` (the LU always) or ``"iterative"`` (CG + GAMG from the start; the LU
+            where CG fails): :mod:`solvers.body_linear`. With expert ``petsc`` options they
+            choose the solver and ``method`` must stay ``"auto"`` (no choice is made).
         petsc: PETSc options of the SNES / KSP / PC, set after the ones these fields stand
             for (:meth:`petsc_options`), e.g. ``{"ksp_type": "cg", "pc_type": "gamg"}``. An
             option PETSc refuses, or one none of the SNES, KSP, PC and factor reads (a
@@ -104,6 +112,7 @@ class NewtonOptions:
     max_backtracks: int = 40
     max_halvings: int = 8
     linear_solver: str = "mumps"
+    method: str = "auto"
     petsc: dict[str, str | int | float | bool] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -123,8 +132,20 @@ class NewtonOptions:
         if self.linear_solver not in ("mumps", "superlu_dist"):
             raise InputError("newton.linear_solver must be 'mumps' or 'superlu_dist', "
                              f"got {self.linear_solver!r}")
+        if self.method not in ("auto", "direct", "iterative"):
+            raise InputError("newton.method must be 'auto', 'direct' or 'iterative', "
+                             f"got {self.method!r}")
+        if self.method == "iterative" and (self.petsc or self.linear_solver != "mumps"):
+            raise InputError("newton.method = 'iterative' falls back on the MUMPS LU and "
+                             "sets the KSP and PC itself: leave newton.petsc and "
+                             "newton.linear_solver unset")
         if self.petsc:
             check_petsc_options(self.petsc_options(), self.petsc)
+
+    @property
+    def chooses_method(self) -> bool:
+        """Whether the solver picks direct or iterative after its first factorisation."""
+        return self.method == "auto" and not self.petsc and self.linear_solver == "mumps"
 
     @property
     def matrix_kind(self) -> str:
@@ -310,6 +331,29 @@ class EnergyNewton:
         self.backtracks = 0
         self.flips = 0
         self._last_step, self._ls_failed, self._fnorm0 = 1.0, False, math.inf
+        self.iterative: IterativeBodySolve | None = None
+        self._choice_due = self.options.chooses_method
+        if self.options.method == "iterative":
+            self._use_iterative()
+
+    @property
+    def linear_method(self) -> str:
+        """``"iterative"`` (CG + GAMG, :mod:`solvers.body_linear`) or ``"direct"`` (the LU)."""
+        return "direct" if self.iterative is None else "iterative"
+
+    def _use_iterative(self) -> None:
+        """Solve the Newton steps from now on by CG + GAMG (the LU where CG fails)."""
+        self.iterative = IterativeBodySolve(self._prefix)
+        pc = self.problem.solver.getKSP().getPC()
+        pc.setType(PETSc.PC.Type.PYTHON)
+        pc.setPythonContext(self.iterative)
+
+    def _choose_method(self) -> None:
+        """After the first factorisation: CG + GAMG if it cost more than the crossover."""
+        self._choice_due = False
+        factor = self.problem.solver.getKSP().getPC().getFactorMatrix()
+        if choose_body_method(float(factor.getMumpsRinfog(1))) == "iterative":
+            self._use_iterative()
 
     def energy(self) -> float:
         """``Pi(u)`` at the current ``u`` [J], ``+inf`` if ``det F <= 0`` anywhere."""
@@ -504,6 +548,8 @@ class EnergyNewton:
             return NewtonResult(False, 0, 0, math.nan, math.inf, start)
         self._last_step, self._ls_failed = 1.0, False
         self.problem.solve()
+        if self._choice_due and snes.getIterationNumber() > 0:  # the first factorisation
+            self._choose_method()
         if self._unchecked and snes.getIterationNumber() > 0:  # read at the factor's set-up
             try:
                 self._unchecked = unread_options(self._prefix, self._unchecked, factor=True)

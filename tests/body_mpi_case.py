@@ -14,6 +14,7 @@ from models.body import BodyOptions, PinSpec
 from models.contact import ContactOptions
 from models.materials import Material
 from solvers.body import Body
+from solvers.body_newton import NewtonOptions
 
 
 def gathered(body: Body) -> np.ndarray:
@@ -40,11 +41,11 @@ def compression_p2() -> Body:
     return body
 
 
-def drop_p1() -> Body:
+def drop_p1(method: str = "auto") -> Body:
     mesh = dolfinx.mesh.create_box(MPI.COMM_WORLD, [[0, 0, 0.002], [0.5, 0.4, 0.3]], [4, 3, 2],
                                    dolfinx.mesh.CellType.tetrahedron)
     opts = BodyOptions(dynamics="implicit_euler", dt=0.01, contacts=(ContactOptions(),))
-    body = Body(mesh, Material(E=1e5, nu=0.3), opts)
+    body = Body(mesh, Material(E=1e5, nu=0.3), opts, NewtonOptions(method=method))
     body.v.interpolate(lambda x: np.vstack([0.2 * x[1], 0 * x[0], -0.5 + 0 * x[0]]))
     for _ in range(5):
         body.step()
@@ -70,6 +71,7 @@ def cantilever_from_arrays() -> Body:
 def main(out: str) -> None:
     results = {}
     cases = (("compression_p2", compression_p2), ("drop_p1", drop_p1),
+             ("drop_p1_iterative", lambda: drop_p1("iterative")),
              ("cantilever_from_arrays", cantilever_from_arrays))
     for name, build in cases:
         body = build()

@@ -300,6 +300,7 @@ class ShellSide:
         run.facts["peak_memory_mb"] = [*run.facts["peak_memory_mb"], facts["peak_memory_mb"]]
         if facts["contact_facets"] is not None:
             run.facts["contact_facets"] = facts["contact_facets"]
+        run.facts["body_linear"] = facts["body_linear"]
         run.facts["body_rank"] = {"wall_time": facts["wall_time"], "cpu_time": facts["cpu"]}
         write_summary(run)
         render_if_asked(run, log, self.comm)
@@ -351,7 +352,8 @@ class BodySide:
         self.wait(run.n_frames)
         MPI.Request.Waitall(self.sent)
         self.comm.send({"peak_memory_mb": peak_memory_mb(), "contact_facets":
-                        contact_facts(run.body), "wall_time": time.perf_counter() - wall,
+                        contact_facts(run.body), "body_linear": run.body.linear_facts(),
+                        "wall_time": time.perf_counter() - wall,
                         "cpu": time.process_time() - cpu}, dest=SHELL_RANK, tag=FACTS)
         render_if_asked(run, lambda _: None, self.comm)  # its share of the frames
 

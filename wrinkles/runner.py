@@ -707,6 +707,7 @@ def run_frames(run: Run, log: Callable[[str], None] = print, render: bool = True
     contact = contact_facts(run.body)
     if contact is not None:
         run.facts["contact_facets"] = contact
+    run.facts["body_linear"] = run.body.linear_facts()
     write_summary(run)
     if run.comm.rank == 0:
         shutil.rmtree(run.out / WORK_DIR, ignore_errors=True)

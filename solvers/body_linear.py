@@ -23,15 +23,14 @@ from typing import Any
 
 from models.backend import PETSc
 
-ITERATIVE_FLOPS: float = 5.0e8
+ITERATIVE_FLOPS: float = 1.0e9
 """Operations of one LU factorisation above which the body's steps are solved by CG + GAMG."""
 ITERATIVE_RTOL: float = 1.0e-10
 """Relative residual of the CG solves: far below the Newton tolerances, so the Newton
 iterations are those of the exact solves."""
 DETERMINISTIC: dict[str, str] = {"pc_gamg_mis_k_minimum_degree_ordering": "true"}
 """GAMG's aggregation visits the vertices by degree, not in a random order: the
-preconditioner, hence the iterates, do not depend on the random numbers the process drew
-before (an overlapped run's body rank gives the serial run's frames bit for bit)."""
+preconditioner is a function of the matrix."""
 MAX_CG_ITERATIONS: int = 500
 """CG iterations before a solve counts as failed (and the LU solves that step)."""
 

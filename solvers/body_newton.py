@@ -342,11 +342,19 @@ class EnergyNewton:
         return "direct" if self.iterative is None else "iterative"
 
     def _use_iterative(self) -> None:
-        """Solve the Newton steps from now on by CG + GAMG (the LU where CG fails)."""
+        """Solve the Newton steps from now on by CG + GAMG (the LU where CG fails).
+
+        SNES gets a new ``preonly`` KSP around the ``PCPYTHON`` context; the one that held the
+        LU goes with its factor.
+        """
+        snes = self.problem.solver
         self.iterative = IterativeBodySolve(self._prefix)
-        pc = self.problem.solver.getKSP().getPC()
-        pc.setType(PETSc.PC.Type.PYTHON)
-        pc.setPythonContext(self.iterative)
+        ksp = PETSc.KSP().create(snes.getComm())
+        ksp.setType(PETSc.KSP.Type.PREONLY)
+        ksp.getPC().setType(PETSc.PC.Type.PYTHON)
+        ksp.getPC().setPythonContext(self.iterative)
+        snes.setKSP(ksp)
+        ksp.destroy()  # SNES holds its reference
 
     def _choose_method(self) -> None:
         """After the first factorisation: CG + GAMG if it cost more than the crossover."""

@@ -42,6 +42,7 @@ def test_the_choice_is_by_the_factorisation_cost_at_both_sides_of_the_crossover(
     assert choose_body_method(8.8e9) == "iterative"  # the cinolib ball's 13 515 dofs
     assert choose_body_method(1.44e9) == "iterative"  # the bunny's 14 010 dofs
     assert choose_body_method(3.3e8) == "direct"  # ball_sofa.toml's sofa, 4 386 dofs
+    assert choose_body_method(5.4e8) == "direct"  # the demo's sofa in P2, 6 087 dofs
 
 
 def test_iterative_steps_are_the_direct_ones():

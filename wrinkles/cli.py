@@ -156,9 +156,9 @@ def command_check(args: argparse.Namespace) -> int:
     """Validate the scene and its mesh; print the scene and the values the run will use (JSON).
 
     The mesh is built or read and validated, the set-up checks that need only the mesh run
-    (pins, obstacles, balls: :func:`wrinkles.set_up_checks.check_mesh_set_up`), the shell's surface
-    subdivided and its stiffnesses, cluster sizing and memory estimate computed (no dolfinx
-    body, no solve).
+    (pins, obstacles, balls: :func:`wrinkles.set_up_checks.check_mesh_set_up`), the shell's
+    surface subdivided and its stiffnesses, cluster sizing and memory estimate computed (no
+    dolfinx body, no solve).
     """
     from models.backend import MPI
     from models.embedding.caps import flip_caps

@@ -45,7 +45,7 @@ def check_mesh_set_up(scene: Scene, tet: TetMesh) -> dict[str, Any]:
     refuse_pin_conflicts([(c.first, c.second, c.component, X[c.nodes])
                           for c in pin_conflicts(pins, X)], float(np.abs(X).max(initial=0.0)))
     warn_pins(scene, counts)
-    h_mean = float(max_edge_lengths(tet.points, tet.tets).mean())
+    h_mean = float(max_edge_lengths(tet.points, tet.tets).mean())  # dolfinx's Mesh.h of a tet
     check_obstacles_clear(X, h_mean, scene, MPI.COMM_SELF)
     check_balls_outside(affine_maps_of(X[tet.tets]), np.arange(tet.n_tets), scene,
                         MPI.COMM_SELF)

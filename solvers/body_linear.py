@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from models.backend import PETSc
+from models.backend import PETSc, set_from_options
 
 ITERATIVE_FLOPS: float = 1.0e9
 """Operations of one LU factorisation above which the body's steps are solved by CG + GAMG."""
@@ -83,19 +83,11 @@ class IterativeBodySolve:
             matrix.convert("aij", self._aij)  # its values into the copy
         if self._cg is None:
             self._cg = PETSc.KSP().create(matrix.getComm())
-            prefix = self.prefix + "cg_"
-            self._cg.setOptionsPrefix(prefix)
+            self._cg.setOptionsPrefix(self.prefix + "cg_")
             self._cg.setType("cg")
             self._cg.getPC().setType("gamg")
             self._cg.setTolerances(rtol=ITERATIVE_RTOL, atol=0.0, max_it=MAX_CG_ITERATIONS)
-            table = PETSc.Options()
-            for key, value in DETERMINISTIC.items():
-                table.setValue(prefix + key, value)
-            try:
-                self._cg.setFromOptions()
-            finally:
-                for key in DETERMINISTIC:
-                    table.delValue(prefix + key)
+            set_from_options(self._cg, DETERMINISTIC)
         self._cg.setOperators(self._aij)
         self._lu_current = False
 

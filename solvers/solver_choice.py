@@ -2,11 +2,15 @@
 
 The choices, all by what the run is, not by flags:
 
-* **Linear method by size and structure.** The Newton system is solved by CG with geometric
-  multigrid on the subdivision hierarchy (:mod:`solvers.multigrid`) when the shell has at
-  least :data:`MULTIGRID_FROM_VERTICES` vertices and at least :data:`MULTIGRID_FROM_LEVELS`
-  subdivision levels above the body's surface (the coarse solve then has 1/16 of the unknowns
-  or fewer); otherwise it is factorised (sparse LDL^T, :mod:`solvers.linear`). Both bounds are
+* **Linear method by size, structure and load.** The Newton system is solved by CG with
+  geometric multigrid on the subdivision hierarchy (:mod:`solvers.multigrid`) when the shell
+  has at least :data:`MULTIGRID_FROM_VERTICES` vertices and at least
+  :data:`MULTIGRID_FROM_LEVELS` subdivision levels above the body's surface (the coarse solve
+  then has 1/16 of the unknowns or fewer), or, under a static load, at least
+  :data:`MULTIGRID_STATIC_FROM_LEVELS`; otherwise it is factorised (sparse LDL^T,
+  :mod:`solvers.linear`). A one-level hierarchy pays where the skin wrinkles through a load
+  sequence (many cheap inexact steps) and not in an impact (few steps through a strongly
+  indefinite Hessian, where the direct path reuses its factorisations). The bounds are
   measured on ``wrinkles run`` (docs/notes/solver-choice.md).
 * **The wrinkle-phase coarse space by size.** Multigrid-CG adds the phase space of
   :mod:`solvers.phase_space` to its V-cycle from :data:`PHASE_SPACE_FROM_VERTICES` shell
@@ -55,21 +59,28 @@ MULTIGRID_FROM_VERTICES: int = 2000
 """Shell vertex count from which "auto" may select multigrid-CG instead of the direct solve."""
 
 MULTIGRID_FROM_LEVELS: int = 2
-"""Subdivision levels from which "auto" may select multigrid-CG (one level leaves a coarse
-problem of a quarter of the unknowns: slower than the direct solve)."""
+"""Subdivision levels from which "auto" selects multigrid-CG under any load."""
+
+MULTIGRID_STATIC_FROM_LEVELS: int = 1
+"""Subdivision levels from which "auto" selects multigrid-CG under a static load (one level
+leaves a coarse problem of a quarter of the unknowns: slower than the direct solve in a
+dynamic scene, faster in a load sequence)."""
 
 
-def choose_linear_method(method: str, vertices: int, levels: int) -> ConcreteMethod:
+def choose_linear_method(method: str, vertices: int, levels: int, *,
+                         static: bool) -> ConcreteMethod:
     """Return the concrete linear method: ``method`` itself, or for "auto" the one that pays.
 
     Args:
         method: "auto", "direct" or "multigrid".
         vertices: shell vertex count (>= 0).
         levels: subdivision levels of the shell above the body's surface (>= 0).
+        static: the body is solved as statics (a load sequence), not as dynamics.
 
     Returns:
         For "auto": "multigrid" when ``vertices >= MULTIGRID_FROM_VERTICES`` and ``levels >=
-        MULTIGRID_FROM_LEVELS``, else "direct".
+        MULTIGRID_FROM_LEVELS`` (``MULTIGRID_STATIC_FROM_LEVELS`` when ``static``), else
+        "direct". The same choice on every rank count (the vertex count is the whole shell's).
 
     Raises:
         InputError: ``method`` is not one of :data:`LINEAR_METHODS`.
@@ -79,7 +90,8 @@ def choose_linear_method(method: str, vertices: int, levels: int) -> ConcreteMet
         raise InputError(f"shell.solver.method: expected one of {list(LINEAR_METHODS)}, got "
                          f"{method!r}")
     if method == "auto":
-        pays = vertices >= MULTIGRID_FROM_VERTICES and levels >= MULTIGRID_FROM_LEVELS
+        deep = MULTIGRID_STATIC_FROM_LEVELS if static else MULTIGRID_FROM_LEVELS
+        pays = vertices >= MULTIGRID_FROM_VERTICES and levels >= deep
         return "multigrid" if pays else "direct"
     return "direct" if method == "direct" else "multigrid"
 

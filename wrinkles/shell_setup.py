@@ -192,9 +192,9 @@ class SolverKeys:
     """``[shell.solver]``: how the shell is solved: a few named choices and an expert mapping.
 
     Attributes:
-        method: linear solves of the Newton steps: "auto" (by the shell's size,
-            :func:`solvers.solver_choice.choose_linear_method`), "direct" (sparse LDL^T) or
-            "multigrid" (CG with geometric multigrid on the subdivision hierarchy).
+        method: linear solves of the Newton steps: "auto" (by the shell's size, levels and
+            load, :func:`solvers.solver_choice.choose_linear_method`), "direct" (sparse
+            LDL^T) or "multigrid" (CG with geometric multigrid on the subdivision hierarchy).
         rtol: relative gradient tolerance of each frame's Newton solve.
         max_iterations: Newton iterations per frame.
         threads: threads of the element kernels and multigrid products; 0 = the cores of a
@@ -355,14 +355,13 @@ def resolve_solver(options: ShellOptions, vertices: int, ranks: int, *,
                    static: bool) -> ShellOptions:
     """Return ``options`` with the solver choices made concrete for the shell and its load.
 
-    "auto" becomes the method for a shell of ``vertices`` vertices and its subdivision levels,
-    threads 0 the count for that size and ``ranks``, an unset :data:`PHASE_SPACE_KEY` the
-    phase-space choice for that size (none for the monolithic two-way step, whose joint CG
-    does not use it), and each unset key of the shift ladder and of the
-    factorisation reuse the one for a ``static`` load or a dynamic one
-    (:mod:`solvers.solver_choice`); the internal options are
-    rebuilt from them, so every later reader sees the choice. The vertex count is the whole
-    shell's, so every rank count chooses alike.
+    "auto" becomes the method for a shell of ``vertices`` vertices, its subdivision levels and
+    a ``static`` or dynamic load, threads 0 the count for that size and ``ranks``, an unset
+    :data:`PHASE_SPACE_KEY` the phase-space choice for that size (none for the monolithic
+    two-way step, whose joint CG does not use it), and each unset key of the shift ladder and
+    of the factorisation reuse the one for the load (:mod:`solvers.solver_choice`); the
+    internal options are rebuilt from them, so every later reader sees the choice. The vertex
+    count is the whole shell's, so every rank count chooses alike.
     """
     by_load = {**choose_shift_schedule(static), **choose_factor_reuse(static)}
     chosen = {PHASE_SPACE_KEY: choose_phase_space(vertices) and not options.monolithic_two_way,
@@ -371,7 +370,8 @@ def resolve_solver(options: ShellOptions, vertices: int, ranks: int, *,
                       if key not in options.solver.options}, **options.solver.options}
     solver = dataclasses.replace(options.solver,
                                  method=choose_linear_method(options.solver.method, vertices,
-                                                             options.subdivision.levels),
+                                                             options.subdivision.levels,
+                                                             static=static),
                                  threads=choose_threads(options.solver.threads, ranks,
                                                         vertices),
                                  options=expert_keys)
@@ -532,10 +532,12 @@ def available_memory() -> float:
     return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
 
 
-def check_memory(options: ShellOptions, surface_faces: int, ranks_here: int = 1) -> None:
+def check_memory(options: ShellOptions, surface_faces: int, ranks_here: int = 1, *,
+                 static: bool) -> None:
     """Refuse a shell that would not fit in memory, before it is built.
 
-    Every rank of this machine holds a whole shell (``ranks_here`` of them).
+    Every rank of this machine holds a whole shell (``ranks_here`` of them); the linear method
+    is the one ``auto`` chooses for the shell and a ``static`` or dynamic load.
 
     Raises:
         InputError: naming ``shell.subdivision.levels``, the vertex count, the estimate and
@@ -544,7 +546,7 @@ def check_memory(options: ShellOptions, surface_faces: int, ranks_here: int = 1)
     """
     levels = options.subdivision.levels
     n = shell_vertices(surface_faces, levels)
-    method = choose_linear_method(options.solver.method, n, levels)
+    method = choose_linear_method(options.solver.method, n, levels, static=static)
     need = BYTES_PER_VERTEX[method] * n * ranks_here
     have = available_memory()
     if need > 0.9 * have:
@@ -573,7 +575,7 @@ def shell_report(options: ShellOptions, material: Material, vertices: np.ndarray
     ``static`` or dynamic body). Subdivides the surface (after :func:`check_memory`), builds
     no clusters.
     """
-    check_memory(options, faces.shape[0])
+    check_memory(options, faces.shape[0], static=static)
     sub, _, a = refine(options, vertices, faces)
     options = resolve_solver(options, sub.vertices.shape[0], ranks, static=static)
     params = shell_params(options, a)
@@ -656,11 +658,12 @@ def build_shell(body: Body, options: ShellOptions, material: Material,
             f"{caps.quality_before:.3g} -> {caps.quality_after:.3g}; the shell's rest surface "
             f"off the body's by at most {caps.moved:.3g} m)")
     local = body.mesh.comm.Split_type(MPI.COMM_TYPE_SHARED)
-    check_memory(options, surface.faces.shape[0], local.size)
+    static = body.options.dynamics == "static"
+    check_memory(options, surface.faces.shape[0], local.size, static=static)
     local.Free()
     sub, topology, a = refine(options, surface.vertices, surface.faces)
     options = resolve_solver(options, sub.vertices.shape[0], body.mesh.comm.size,
-                             static=body.options.dynamics == "static")
+                             static=static)
     log(f"shell: surface of {surface.faces.shape[0]} triangles subdivided "
         f"{options.subdivision.levels} times: {sub.vertices.shape[0]} vertices")
     emb = build_embedding(body.V, sub.vertices, options.internals.embedding)

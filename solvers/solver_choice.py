@@ -2,16 +2,12 @@
 
 The choices, all by what the run is, not by flags:
 
-* **Linear method by size, structure and load.** The Newton system is solved by CG with
-  geometric multigrid on the subdivision hierarchy (:mod:`solvers.multigrid`) when the shell
-  has at least :data:`MULTIGRID_FROM_VERTICES` vertices and at least
-  :data:`MULTIGRID_FROM_LEVELS` subdivision levels above the body's surface (the coarse solve
-  then has 1/16 of the unknowns or fewer), or, under a static load, at least
-  :data:`MULTIGRID_STATIC_FROM_LEVELS`; otherwise it is factorised (sparse LDL^T,
-  :mod:`solvers.linear`). A one-level hierarchy pays where the skin wrinkles through a load
-  sequence (many cheap inexact steps) and not in an impact (few steps through a strongly
-  indefinite Hessian, where the direct path reuses its factorisations). The bounds are
-  measured on ``wrinkles run`` (docs/notes/solver-choice.md).
+* **Linear method by size, structure and load.** CG with geometric multigrid on the
+  subdivision hierarchy (:mod:`solvers.multigrid`) when the shell has at least
+  :data:`MULTIGRID_FROM_VERTICES` vertices and :data:`MULTIGRID_FROM_LEVELS` subdivision
+  levels above the body's surface (:data:`MULTIGRID_STATIC_FROM_LEVELS` under a static load),
+  else the sparse LDL^T (:mod:`solvers.linear`); measured on ``wrinkles run``
+  (docs/notes/solver-choice.md).
 * **The wrinkle-phase coarse space by size.** Multigrid-CG adds the phase space of
   :mod:`solvers.phase_space` to its V-cycle from :data:`PHASE_SPACE_FROM_VERTICES` shell
   vertices. It saves CG iterations at every size, but its set-up (the Galerkin matrix ``Z^T

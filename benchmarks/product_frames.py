@@ -86,7 +86,15 @@ def has_shell(scene: Path) -> bool:
 
 
 def worktree(rev: str, where: Path) -> Path:
-    """Check out ``rev`` into a detached worktree under ``where``; return its path."""
+    """Check out ``rev`` into a detached worktree under ``where``; return its path.
+
+    Raises:
+        SystemExit: ``rev`` names no commit of this repository (exit 1, the message names it).
+    """
+    known = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--verify", "--quiet",
+                            f"{rev}^{{commit}}"], check=False, capture_output=True, text=True)
+    if known.returncode:
+        raise SystemExit(f"--before {rev}: no such commit in {REPO}")
     path = where / f"before-{rev.replace('/', '_')}"
     subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", "--force", str(path),
                     rev], check=True, capture_output=True, text=True)

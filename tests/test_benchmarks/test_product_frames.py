@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import subprocess
 
+import pytest
+
 from benchmarks.product_frames import REPO, main, spread_table, summary_row
 
 TINY = ["--scenes", "default", "--frames", "1", "--set", "shell.subdivision.levels=0"]
@@ -74,3 +76,8 @@ def test_the_spread_of_a_scene_without_a_shell_has_times_and_no_energy():
     (entry,) = spread_table(rows)
     assert entry["frames_time"]["mean"] == 0.5
     assert entry["final_energy"] == {"mean": None, "sd": None, "min": None, "max": None}
+
+
+def test_a_before_that_names_no_commit_is_refused_by_name():
+    with pytest.raises(SystemExit, match=r"--before no-such-rev: no such commit"):
+        main(["--before", "no-such-rev", "--scenes", "default"])

@@ -1197,7 +1197,7 @@ def multigrid_cg(comm: Any, operators: list[Any], smoothers: list[Any], interpol
     ksp.setOperators(operators[-1])
     python = options.eigen_estimate == "solve"
     values = pcmg_options(options.smoother_degree, "python" if python else options.smoother_pc,
-                          distributed=comm.size > 1)
+                          distributed=comm.size > 1, coarse_unknowns=operators[0].getSize()[0])
     db = PETSc.Options()
     for key, value in values.items():
         db.setValue(prefix + key, value)
@@ -1215,18 +1215,30 @@ def multigrid_cg(comm: Any, operators: list[Any], smoothers: list[Any], interpol
     return ksp, jacobi
 
 
-def pcmg_options(degree: int, smoother_pc: str, distributed: bool = False) -> dict[str, str]:
+COARSE_AMG_FROM: int = 2000
+"""Coarse-level unknowns from which the V-cycle's coarse solve is one algebraic multigrid
+cycle (PETSc's GAMG) instead of a Cholesky factorisation."""
+
+
+def pcmg_options(degree: int, smoother_pc: str, distributed: bool = False,
+                 coarse_unknowns: int = 0) -> dict[str, str]:
     """PETSc options (below the solver's prefix) of the level smoothers and the coarse solve.
 
-    The coarse level is factorised by MUMPS Cholesky in METIS's ordering (``ICNTL(7) = 5``,
-    as the direct path; MUMPS's own choice for a few thousand unknowns costs more fill: on
-    the one-level hierarchy of ``scenes/elbow_closing.toml``, 2 523 coarse unknowns, its
-    factorisations and solves take 1.3x the time, docs/notes/multigrid.md); over several
-    ranks every rank holds the whole (small) coarse matrix and solves it alone
-    (``PCREDUNDANT``): a distributed solve of a few hundred unknowns costs its messages, not
-    its arithmetic.
+    A coarse level of fewer than :data:`COARSE_AMG_FROM` unknowns (a hierarchy of two or more
+    subdivision levels) is factorised by MUMPS Cholesky in METIS's ordering (``ICNTL(7) =
+    5``, as the direct path). A larger one (one subdivision level: the body's whole surface,
+    with the cluster penalty assembled in) is applied as one GAMG V-cycle (PCGAMG with its
+    default smoothed aggregation and Chebyshev smoothers: a fixed symmetric operator, so the
+    outer CG stays CG), set up again at every Newton matrix: a Cholesky of the elbow's 2 523
+    coarse unknowns cost 87 MFlop and most of the frames' CG time (docs/notes/multigrid.md).
+    Over several ranks every rank holds the whole coarse matrix and solves it alone
+    (``PCREDUNDANT``): a distributed solve of a small system costs its messages, not its
+    arithmetic, and every rank count applies the same coarse operator.
     """
     coarse = "mg_coarse_redundant_" if distributed else "mg_coarse_"
+    solve = ({f"{coarse}pc_type": "gamg"} if coarse_unknowns >= COARSE_AMG_FROM else
+             {f"{coarse}pc_type": "cholesky", f"{coarse}pc_factor_mat_solver_type": "mumps",
+              f"{coarse}mat_mumps_icntl_7": str(MUMPS_ORDERINGS["metis"])})
     return {
         "mg_levels_ksp_type": "chebyshev",
         "mg_levels_ksp_max_it": str(degree),
@@ -1234,7 +1246,5 @@ def pcmg_options(degree: int, smoother_pc: str, distributed: bool = False) -> di
         "mg_levels_pc_type": smoother_pc,
         "mg_coarse_ksp_type": "preonly",
         **({"mg_coarse_pc_type": "redundant"} if distributed else {}),
-        f"{coarse}pc_type": "cholesky",
-        f"{coarse}pc_factor_mat_solver_type": "mumps",
-        f"{coarse}mat_mumps_icntl_7": str(MUMPS_ORDERINGS["metis"]),
+        **solve,
     }

@@ -1196,10 +1196,9 @@ def multigrid_cg(comm: Any, operators: list[Any], smoothers: list[Any], interpol
         pc.getMGSmoother(level).setOperators(op, smoother)
     ksp.setOperators(operators[-1])
     python = options.eigen_estimate == "solve"
-    one_level = len(operators) == 2
+    coarse_amg = len(operators) == 2 and operators[0].getSize()[0] >= COARSE_AMG_FROM
     values = pcmg_options(options.smoother_degree, "python" if python else options.smoother_pc,
-                          distributed=comm.size > 1,
-                          coarse_unknowns=operators[0].getSize()[0] if one_level else 0)
+                          distributed=comm.size > 1, coarse_amg=coarse_amg)
     db = PETSc.Options()
     for key, value in values.items():
         db.setValue(prefix + key, value)
@@ -1223,23 +1222,22 @@ algebraic multigrid cycle (PETSc's GAMG) instead of a Cholesky factorisation."""
 
 
 def pcmg_options(degree: int, smoother_pc: str, distributed: bool = False,
-                 coarse_unknowns: int = 0) -> dict[str, str]:
+                 coarse_amg: bool = False) -> dict[str, str]:
     """PETSc options (below the solver's prefix) of the level smoothers and the coarse solve.
 
-    ``coarse_unknowns``: the coarse level's size when the hierarchy has one subdivision level
-    (the coarse level is the body's whole surface, with the cluster penalty assembled in),
-    else 0. From :data:`COARSE_AMG_FROM` such unknowns the coarse level is applied as one GAMG
-    V-cycle (PCGAMG's defaults, smoothed aggregation and Chebyshev smoothers: a fixed
-    symmetric operator, so the outer CG stays CG), set up again at every Newton matrix; a
-    Cholesky of the elbow's 2 523 coarse unknowns cost 87 MFlop and most of the frames' CG
-    time (docs/notes/multigrid.md). Any other coarse level is factorised by MUMPS Cholesky in
-    METIS's ordering (``ICNTL(7) = 5``, as the direct path). Over several ranks every rank
-    holds the whole coarse matrix and solves it alone (``PCREDUNDANT``): a distributed solve
-    of a small system costs its messages, not its arithmetic, and every rank count applies
-    the same coarse operator.
+    ``coarse_amg`` (a hierarchy of one subdivision level whose coarse level, the body's whole
+    surface with the cluster penalty assembled in, has :data:`COARSE_AMG_FROM` unknowns or
+    more): the coarse level is applied as one GAMG V-cycle (PCGAMG's defaults, smoothed
+    aggregation and Chebyshev smoothers: a fixed symmetric operator, so the outer CG stays
+    CG), set up again at every Newton matrix; a Cholesky of the elbow's 2 523 coarse unknowns
+    cost 87 MFlop and most of the frames' CG time (docs/notes/multigrid.md). Any other coarse
+    level is factorised by MUMPS Cholesky in METIS's ordering (``ICNTL(7) = 5``, as the
+    direct path). Over several ranks every rank holds the whole coarse matrix and solves it
+    alone (``PCREDUNDANT``): a distributed solve of a small system costs its messages, not its
+    arithmetic, and every rank count applies the same coarse operator.
     """
     coarse = "mg_coarse_redundant_" if distributed else "mg_coarse_"
-    solve = ({f"{coarse}pc_type": "gamg"} if coarse_unknowns >= COARSE_AMG_FROM else
+    solve = ({f"{coarse}pc_type": "gamg"} if coarse_amg else
              {f"{coarse}pc_type": "cholesky", f"{coarse}pc_factor_mat_solver_type": "mumps",
               f"{coarse}mat_mumps_icntl_7": str(MUMPS_ORDERINGS["metis"])})
     return {

@@ -35,16 +35,14 @@ MAX_CG_ITERATIONS: int = 500
 """CG iterations before a solve counts as failed (and the LU solves that step)."""
 
 
-def choose_body_method(lu_flops: float, threshold: float | None = None) -> str:
-    """Return ``"iterative"`` when one LU factorisation takes more than ``threshold`` flops.
+def choose_body_method(lu_flops: float) -> str:
+    """Return ``"iterative"`` when one LU factorisation takes more than :data:`ITERATIVE_FLOPS`.
 
     Args:
         lu_flops: Operations of the elimination, MUMPS ``RINFOG(1)`` (all ranks together).
-        threshold: The crossover [flop]; None: :data:`ITERATIVE_FLOPS`.
 
     """
-    return "iterative" if lu_flops > (ITERATIVE_FLOPS if threshold is None else threshold) \
-        else "direct"
+    return "iterative" if lu_flops > ITERATIVE_FLOPS else "direct"
 
 
 class IterativeBodySolve:

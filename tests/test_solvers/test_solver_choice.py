@@ -23,10 +23,10 @@ from solvers.solver_choice import (
 @pytest.mark.parametrize(("vertices", "expected"), [
     (0, "direct"), (650, "direct"), (MULTIGRID_FROM_VERTICES - 1, "direct"),
     (MULTIGRID_FROM_VERTICES, "multigrid"), (2610, "multigrid"), (41730, "multigrid")])
-@pytest.mark.parametrize("levels", [1, 2])
-def test_auto_picks_the_method_by_size_on_both_sides_of_the_crossover(vertices, expected, levels):
-    assert choose_linear_method("auto", vertices, levels, static=True) == expected
-    assert choose_linear_method("auto", vertices, 2, static=False) == expected
+@pytest.mark.parametrize(("levels", "static"), [(1, True), (2, True), (2, False)])
+def test_auto_picks_the_method_by_size_on_both_sides_of_the_crossover(vertices, expected, levels,
+                                                                      static):
+    assert choose_linear_method("auto", vertices, levels, static=static) == expected
 
 
 @pytest.mark.parametrize(("vertices", "expected"), [

@@ -1232,11 +1232,15 @@ def pcmg_options(degree: int, smoother_pc: str, distributed: bool = False,
     CG), set up again at every Newton matrix; a Cholesky of the elbow's 2 523 coarse unknowns
     cost 87 MFlop and most of the frames' CG time (docs/notes/multigrid.md). Any other coarse
     level is factorised by MUMPS Cholesky in METIS's ordering (``ICNTL(7) = 5``, as the
-    direct path). Over several ranks every rank holds the whole coarse matrix and solves it
-    alone (``PCREDUNDANT``): a distributed solve of a small system costs its messages, not its
-    arithmetic, and every rank count applies the same coarse operator.
+    direct path). Over several ranks a Cholesky coarse level is held whole by every rank and
+    solved there alone (``PCREDUNDANT``: a distributed solve of a small system costs its
+    messages, not its arithmetic, and every rank count applies the same coarse operator); a
+    GAMG coarse level runs over the ranks on their own rows, its aggregates then depending on
+    the partition (a redundant cycle repeated the whole coarse work on every rank: the
+    sphere's 4 frames on 2 ranks 24.5 s against 19.9 s, docs/notes/multigrid.md).
     """
-    coarse = "mg_coarse_redundant_" if distributed else "mg_coarse_"
+    redundant = distributed and not coarse_amg
+    coarse = "mg_coarse_redundant_" if redundant else "mg_coarse_"
     solve = ({f"{coarse}pc_type": "gamg"} if coarse_amg else
              {f"{coarse}pc_type": "cholesky", f"{coarse}pc_factor_mat_solver_type": "mumps",
               f"{coarse}mat_mumps_icntl_7": str(MUMPS_ORDERINGS["metis"])})
@@ -1246,6 +1250,6 @@ def pcmg_options(degree: int, smoother_pc: str, distributed: bool = False,
         "mg_levels_ksp_chebyshev_esteig": "0,0.1,0,1.1",
         "mg_levels_pc_type": smoother_pc,
         "mg_coarse_ksp_type": "preonly",
-        **({"mg_coarse_pc_type": "redundant"} if distributed else {}),
+        **({"mg_coarse_pc_type": "redundant"} if redundant else {}),
         **solve,
     }

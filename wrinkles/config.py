@@ -242,8 +242,10 @@ def build[T](cls: type[T], table: Any, prefix: str = "", src: Source | None = No
     """Build the frozen dataclass ``cls`` from a TOML table.
 
     Keys map to the ``init`` fields of ``cls`` through their type annotations; absent keys keep
-    the field default. ``InputError`` raised by ``cls.__post_init__`` is re-raised with the file
-    and the dotted key of the table prepended.
+    the field default, also inside a partial table of a field whose default is a dataclass
+    instance (``augmented_linear = {ordering = "amd"}`` keeps the default's other values, not
+    those of a bare ``LinearSolverOptions``). ``InputError`` raised by ``cls.__post_init__``
+    is re-raised with the file and the dotted key of the table prepended.
 
     Args:
         cls: the dataclass type.
@@ -260,11 +262,30 @@ def build[T](cls: type[T], table: Any, prefix: str = "", src: Source | None = No
     hints = typing.get_type_hints(cls)
     field_hints = {f.name: hints[f.name] for f in fields}
     required = _required(field_hints, inspect.signature(cls).parameters)
-    kwargs = convert_kwargs(field_hints, required, table, prefix, src)
+    kwargs = convert_kwargs(field_hints, required, _over_field_defaults(fields, table),
+                            prefix, src)
     try:
         return cls(**kwargs)
     except InputError as exc:
         raise _prefixed(str(exc), prefix, src) from None
+
+
+def _over_field_defaults(fields: list[dataclasses.Field[Any]], table: Any) -> Any:
+    """``table`` with each sub-table laid over its field's default dataclass instance, if any."""
+    if not isinstance(table, Mapping):
+        return table
+    out = dict(table)
+    for f in fields:
+        value = out.get(f.name)
+        if not isinstance(value, Mapping):
+            continue
+        default = (f.default_factory() if f.default_factory is not dataclasses.MISSING
+                   else f.default)
+        if dataclasses.is_dataclass(default) and not isinstance(default, type):
+            base = to_dict(default)
+            _merge(base, value)
+            out[f.name] = base
+    return out
 
 
 def _prefixed(message: str, prefix: str, src: Source) -> InputError:

@@ -12,7 +12,8 @@ import pytest
 from support import EXTERNAL_MESHES, REPO
 
 from meshes.errors import InputError
-from wrinkles.config import Source, apply_override, build, parse_literal, to_dict
+from solvers.shell_newton import ShellNewtonOptions
+from wrinkles.config import Source, apply_override, build, expert, parse_literal, to_dict
 from wrinkles.output import OutputOptions, json_text
 from wrinkles.scene import Scene, load_scene, scene_dict, scene_from_dict, with_frames
 
@@ -382,6 +383,40 @@ def test_generic_build_of_nested_types():
     assert isinstance(root.leaf.weights[0], float)
     assert build(Root, to_dict(root), "", src) == root
     assert build(Root, {}, "", src).leaf is None  # absent table: off
+
+
+@dataclass(frozen=True)
+class Tuned:
+    """Test parent whose nested default differs from the nested class's own defaults.
+
+    Attributes:
+        leaf: defaults to ``Leaf("bb", (2.0,))``, not ``Leaf()``.
+        count: an int.
+
+    """
+
+    leaf: Leaf = field(default_factory=lambda: Leaf("bb", (2.0,)))
+    count: int = 0
+
+
+def test_a_partial_nested_table_keeps_the_rest_of_the_field_default():
+    """A sub-table names only what it changes: the other values are the field default's."""
+    src = Source("t.toml")
+    assert build(Tuned, {"leaf": {"weights": [3]}}, "", src) == Tuned(Leaf("bb", (3.0,)))
+    assert build(Tuned, {"count": 1}, "", src) == Tuned(Leaf("bb", (2.0,)), 1)
+    with pytest.raises(InputError, match=r"unknown key 'leaf.kinds' \(did you mean 'kind'"):
+        build(Tuned, {"leaf": {"kinds": "a"}}, "", src)
+
+
+def test_an_expert_key_inside_a_tuned_solver_table_keeps_its_other_defaults():
+    """``shell.solver.options`` ``newton.augmented_linear.mumps_blr_tolerance`` alone: the
+    augmented system keeps its LDL^T (a bare ``LinearSolverOptions`` would be Cholesky, which
+    the shell Newton refuses for an indefinite system)."""
+    options = expert(ShellNewtonOptions, {"augmented_linear.mumps_blr_tolerance": 1e-6},
+                     "shell.solver.options.newton")
+    assert options.augmented_linear.symmetric == "ldlt"
+    assert options.augmented_linear.mumps_blr_tolerance == 1e-6
+    assert options.linear.symmetric == "cholesky"
 
 
 @pytest.mark.parametrize(("table", "expected"), [

@@ -1236,8 +1236,8 @@ def pcmg_options(degree: int, smoother_pc: str, distributed: bool = False,
     solved there alone (``PCREDUNDANT``: a distributed solve of a small system costs its
     messages, not its arithmetic, and every rank count applies the same coarse operator); a
     GAMG coarse level runs over the ranks on their own rows, its aggregates then depending on
-    the partition (a redundant cycle repeated the whole coarse work on every rank: the
-    sphere's 4 frames on 2 ranks 24.5 s against 19.9 s, docs/notes/multigrid.md).
+    the partition (a redundant cycle would repeat the whole coarse work on every rank;
+    measurements in docs/notes/multigrid.md).
     """
     redundant = distributed and not coarse_amg
     coarse = "mg_coarse_redundant_" if redundant else "mg_coarse_"

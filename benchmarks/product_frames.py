@@ -33,7 +33,10 @@ per scene and code:
 * with ``--ranks 1 2``: each run under ``mpiexec -n N`` (the venv's), every rank count of a
   scene side by side; the frames' wall time is then the measure (the frames' CPU is rank 0's),
   with the speed-up against the first rank count of the same code and the peak resident
-  memory of the largest rank (``peak_memory_mb`` of the summary, when the code records it).
+  memory of the largest rank (``peak_memory_mb`` of the summary, when the code records it);
+  a serial command that the code itself runs on the cores as ranks (a large one-way shell,
+  :func:`solvers.solver_choice.choose_ranks`) shows the ranks its summary records in ``np``
+  and is measured by its wall time, as any run on ranks.
 
 Writes ``benchmarks/results/product_frames.json`` (``--out``). Timings on a shared machine are
 contended; the load average is recorded before and after every run.
@@ -153,6 +156,7 @@ def summary_row(summary: dict[str, Any]) -> dict[str, Any]:
                         if d.get("shell_converged") is False],
         "self_intersections": [d.get("shell_self_intersections") for d in details],
         "method": solver.get("method", "direct"), "threads": solver.get("threads", 1),
+        "run_ranks": int(summary.get("run", {}).get("ranks", 1)),
         "peak_memory_mb": max(summary.get("run", {}).get("peak_memory_mb") or [0.0]) or None}
 
 
@@ -164,11 +168,12 @@ def print_row(scene: str, label: str, r: dict[str, Any]) -> None:
         return
     n = max(r["frames"], 1)
     cpu = r["frames_cpu"]
-    shown, mark = (cpu, " ") if cpu is not None and r["ranks"] == 1 else (r["frames_wall"], "*")
+    ranks = r.get("run_ranks", r["ranks"])
+    shown, mark = (cpu, " ") if cpu is not None and ranks == 1 else (r["frames_wall"], "*")
     failed, total = sum(r["failed_factorizations"]), sum(r["factorizations"])
     speedup = f"{r['speedup']:5.2f}x" if r.get("speedup") else f"{'-':>6}"
     memory = f"{r['peak_memory_mb']:7.0f}" if r.get("peak_memory_mb") else f"{'-':>7}"
-    print(f"{scene:>18} {label:>8} {r['ranks']:>2} {r['method']:>9} {r['threads']:>3} "
+    print(f"{scene:>18} {label:>8} {ranks:>2} {r['method']:>9} {r['threads']:>3} "
           f"{r['frames']:>3} {sum(r['body_iterations']):>6} {sum(r['shell_iterations']):>6} "
           f"{total:>6} {failed:>6} "
           f"{shown:9.2f}{mark} {shown / n:8.2f} {r['frames_wall']:8.2f} {speedup} {memory} "
@@ -214,8 +219,8 @@ def spread_table(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
         its = [sum(r["shell_iterations"]) for r in ok]
         failed = [100.0 * sum(r["failed_factorizations"]) / max(sum(r["factorizations"]), 1)
                   for r in ok]
-        times = [r["frames_cpu"] if r["frames_cpu"] is not None and ranks == 1
-                 else r["frames_wall"] for r in ok]
+        times = [r["frames_cpu"] if r["frames_cpu"] is not None
+                 and r.get("run_ranks", ranks) == 1 else r["frames_wall"] for r in ok]
         energy = [_last_energy(r["shell_energy"]) for r in ok]
         entry = {"scene": scene, "code": code, "ranks": ranks, "runs": len(ok),
                  "failed_runs": len(runs) - len(ok),

@@ -27,11 +27,11 @@ The choices, all by what the run is, not by flags:
   (modified Newton, :class:`solvers.shell_newton.ModifiedNewtonOptions`). A static load
   sequence factorises at every iteration: there the reuse leads the wrinkles onto other
   branches (:func:`choose_factor_reuse`; docs/notes/factor-reuse.md).
-* **Threads by cores and size.** A serial run of a shell of at least
-  :data:`THREADS_FROM_VERTICES` vertices uses the cores this process may run on (its CPU
-  affinity, which batch systems and ``taskset`` set); a smaller shell keeps one thread (the
-  threads' work is too small to shorten the frame, their CPU time is paid), and so does every
-  rank under MPI (one core per rank).
+* **Ranks, then threads, by cores and size.** A shell of at least
+  :data:`RANKS_FROM_VERTICES` vertices runs a serial ``wrinkles run`` on the cores as MPI
+  ranks (:func:`choose_ranks`; two ranks beat two threads, which leave PETSc serial); else a
+  serial run of at least :data:`THREADS_FROM_VERTICES` vertices uses the cores this process
+  may run on (its CPU affinity) as threads; smaller shells and every rank keep one thread.
 * **The two-way joint system over the ranks by size.** Under MPI the joint body-shell system
   is split over the ranks (:mod:`solvers.decomposition.split_coupled`) for a multigrid-CG
   shell of at least :data:`SPLIT_JOINT_FROM_VERTICES` vertices; a smaller one is solved
@@ -207,6 +207,35 @@ def choose_threads(threads: int, ranks: int, vertices: int) -> int:
     if threads:
         return threads
     return available_cores() if ranks == 1 and vertices >= THREADS_FROM_VERTICES else 1
+
+
+RANKS_FROM_VERTICES: int = 10000
+"""Shell vertex count from which a serial ``wrinkles run`` runs on the cores as MPI ranks."""
+
+VERTICES_PER_RANK: int = 5000
+"""Fewest shell vertices per rank :func:`choose_ranks` gives (caps the ranks of many cores)."""
+
+
+def choose_ranks(threads: int, vertices: int, cores: int) -> int:
+    """Return the MPI ranks a serial ``wrinkles run`` of a shell should run on (1: stay).
+
+    With ``threads`` 0 ("auto") a shell of at least :data:`RANKS_FROM_VERTICES` vertices
+    takes ``min(cores, vertices // VERTICES_PER_RANK)`` ranks. Ranks split the whole frame
+    (the shell's energy, CG and set-ups, the body, a two-way joint system, or overlap body
+    and shell), where threads speed up only the element kernels and multigrid products;
+    measured on ``wrinkles run`` at 10 434 - 41 730 vertices, one-way and two-way
+    (docs/notes/solver-choice.md, "Ranks for a serial command"). A ``threads`` count the
+    scene names keeps one process.
+
+    Args:
+        threads: ``shell.solver.threads`` (0 = auto).
+        vertices: shell vertices.
+        cores: cores the process may run on (:func:`available_cores`).
+
+    """
+    if threads or vertices < RANKS_FROM_VERTICES:
+        return 1
+    return max(1, min(cores, vertices // VERTICES_PER_RANK))
 
 
 SPLIT_JOINT_FROM_VERTICES: int = 4000

@@ -33,7 +33,11 @@ COARSE = ("--frames", "2", "--set", "body.dt=0.5", "--set", "shell.subdivision.l
 
 
 def wrinkles_cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    """Run ``python -m wrinkles ARGS`` in a subprocess from the repository (serial, 1 thread)."""
+    """Run ``python -m wrinkles ARGS`` in a subprocess from the repository (one BLAS thread).
+
+    A serial command: a large one-way shell goes on to the machine's cores as MPI ranks, as
+    for a user (:func:`solvers.solver_choice.choose_ranks`).
+    """
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     return subprocess.run([sys.executable, "-m", "wrinkles", *args], capture_output=True,
                           text=True, timeout=timeout, cwd=REPO, env=env)

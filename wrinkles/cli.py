@@ -11,6 +11,10 @@ far and the checkpoint stay on disk, ``summary.json`` gets ``run.diagnostic`` - 
 cell, energy terms, parameters - which is also printed on stderr as one ``diagnostic:`` JSON
 line) or an unexpected exception (a bug: its traceback is printed).
 
+A ``wrinkles run`` started without ``mpiexec`` on a shell of
+:data:`solvers.solver_choice.RANKS_FROM_VERTICES` vertices or more, threads left to the code,
+replaces itself by ``mpiexec -n N wrinkles run ...`` on the machine's cores
+(:func:`command_ranks`; one line says so; ``--set shell.solver.threads=1`` keeps one process).
 Under MPI every rank runs the same code, split over the ranks; a one-way scene on two ranks may
 instead overlap its body and shell stages, one rank each (:mod:`wrinkles.overlap`, chosen by
 ``shell.solver.layout``). Errors raised on all ranks (scene validation, mesh
@@ -26,18 +30,23 @@ import argparse
 import contextlib
 import dataclasses
 import functools
+import os
 import sys
 import time
 import traceback
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from meshes.errors import InputError, SolverError, WrinklesError
 from wrinkles import plot, render, view
+from wrinkles.launch import mpiexec_beside, relaunch_on_ranks, under_launcher
 from wrinkles.output import one_line
 from wrinkles.provenance import version_text
+
+if TYPE_CHECKING:
+    from wrinkles.scene import Scene
 
 AGREE_SECONDS = 10.0
 """How long a failing rank waits for the other ranks to fail too before ``MPI_Abort``."""
@@ -100,8 +109,14 @@ def command_run(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene, args.overrides)
     if args.frames is not None:
         scene = with_frames(scene, args.frames)
-    out = args.out if args.out is not None else Path("out") / args.scene.stem
     comm = MPI.COMM_WORLD
+    if args.command_line is not None and comm.size == 1:
+        ranks, why = command_ranks(scene)
+        if ranks > 1:
+            print(f"wrinkles: {why}: running on {ranks} MPI ranks (mpiexec -n {ranks}; "
+                  "--set shell.solver.threads=1 keeps one process)", flush=True)
+            relaunch_on_ranks(ranks, args.command_line)
+    out = args.out if args.out is not None else Path("out") / args.scene.stem
     if choose_layout(scene, comm) == "overlap":
         with frame_progress(scene.time.frames, comm.size) as log:
             run_overlapped(scene, out, comm, args.resume, args.overwrite, log)
@@ -117,6 +132,30 @@ def command_run(args: argparse.Namespace) -> int:
             abort_alone(exc)
         raise SolverError(record_failure(run, exc)) from None
     return 0
+
+
+def command_ranks(scene: Scene) -> tuple[int, str]:
+    """Ranks a serial ``wrinkles run`` of ``scene`` runs on, and why (1: this process).
+
+    More than one only for a process no MPI launcher started, with the wheel's ``mpiexec``
+    beside the interpreter, a scene whose shell :func:`solvers.solver_choice.choose_ranks`
+    gives ranks for (its mesh read once here to count them); an ``"overlap"`` layout takes
+    two.
+    """
+    from solvers.solver_choice import available_cores, choose_ranks
+    from wrinkles.overlap import scene_sizes
+
+    shell = scene.shell
+    if shell is None or under_launcher(os.environ) or mpiexec_beside() is None:
+        return 1, ""
+    cores = available_cores()
+    if shell.solver.threads or cores < 2:
+        return 1, ""
+    vertices = scene_sizes(scene).shell_vertices
+    ranks = choose_ranks(shell.solver.threads, vertices, cores)
+    if shell.solver.layout == "overlap":
+        ranks = min(ranks, 2)
+    return ranks, f"{vertices} shell vertices, {cores} cores"
 
 
 @contextlib.contextmanager
@@ -188,6 +227,7 @@ def command_check(args: argparse.Namespace) -> int:
                                          static=scene.body.dynamics == "static")
         resolved["shell"]["cap_flips"] = caps.flips
         resolved["shell"]["layout_on_2_ranks"] = layout_for(scene, 2, lambda: scene_sizes(scene))
+        resolved["shell"]["ranks_of_a_serial_run"] = command_ranks(scene)[0]
         if scene.shell.monolithic_two_way:
             split = choose_joint_split(2, resolved["shell"]["vertices"],
                                        resolved["shell"]["solver"]["method"])
@@ -276,12 +316,18 @@ def warning_line(message: Warning | str, category: type[Warning], *_: Any, **__:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``wrinkles`` console script; return the exit code."""
+    """Entry point of the ``wrinkles`` console script; return the exit code.
+
+    Without ``argv`` (the console script, ``python -m wrinkles``) the command line is
+    ``sys.argv``, and a serial ``run`` may go on to the machine's cores as MPI ranks
+    (:func:`command_ranks`); with ``argv`` (a caller in Python) it stays in this process.
+    """
     warnings.formatwarning = warning_line
     try:
         args = build_parser().parse_args(argv)
     except InputError as exc:
         return report(exc)
+    args.command_line = sys.argv[1:] if argv is None else None
     try:
         agreement_comm()
         return COMMANDS[args.command](args)

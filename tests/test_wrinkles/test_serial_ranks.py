@@ -1,0 +1,103 @@
+"""A serial ``wrinkles run`` of a large shell runs on the machine's cores as MPI ranks."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from support import DEFAULT_SCENE, wrinkles
+
+from solvers import solver_choice
+from solvers.solver_choice import RANKS_FROM_VERTICES, available_cores
+from wrinkles import cli
+from wrinkles.launch import LAUNCHER_VARIABLES, mpiexec_beside, under_launcher
+from wrinkles.scene import load_scene
+
+LEVELS_3 = ["--set", "shell.subdivision.levels=3"]
+"""The default bar at three subdivision levels: 10 434 shell vertices, over the crossover."""
+SMALL_LOAD = ["--frames", "1", "--set", "body.dt=0.01", "--set", "output.render=false"]
+"""One frame of a 0.2 mm push: the skin does not buckle, the frame takes a few seconds."""
+
+
+def scene(*overrides: str):
+    """The default scene with ``--set`` overrides (``key=value`` strings)."""
+    return load_scene(DEFAULT_SCENE, list(overrides))
+
+
+@pytest.fixture
+def two_cores(monkeypatch):
+    """A machine of two cores with the wheel's launcher, the process started without MPI."""
+    monkeypatch.setattr(solver_choice, "available_cores", lambda: 2)
+    monkeypatch.setattr(cli, "mpiexec_beside", lambda: "/venv/bin/mpiexec")
+    for name in LAUNCHER_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+
+
+def test_the_default_scene_stays_in_one_process_at_three_levels_it_takes_two_ranks(two_cores):
+    assert cli.command_ranks(scene())[0] == 1  # 2 610 vertices
+    ranks, why = cli.command_ranks(scene("shell.subdivision.levels=3"))
+    assert (ranks, why) == (2, "10434 shell vertices, 2 cores")
+    assert 2610 < RANKS_FROM_VERTICES <= 10434
+
+
+def test_named_threads_or_a_launcher_keep_one_process_a_two_way_shell_goes(two_cores,
+                                                                           monkeypatch):
+    assert cli.command_ranks(scene("shell.subdivision.levels=3",
+                                   "shell.solver.threads=1"))[0] == 1
+    assert cli.command_ranks(scene("shell.subdivision.levels=3",
+                                   "shell.coupling.mode='two_way'"))[0] == 2
+    monkeypatch.setenv("PMI_SIZE", "1")  # mpiexec -n 1 wrinkles run: the user chose one rank
+    assert cli.command_ranks(scene("shell.subdivision.levels=3"))[0] == 1
+
+
+def test_without_the_wheels_launcher_or_a_second_core_the_run_stays(two_cores, monkeypatch):
+    big = scene("shell.subdivision.levels=3")
+    monkeypatch.setattr(cli, "mpiexec_beside", lambda: None)
+    assert cli.command_ranks(big)[0] == 1
+    monkeypatch.setattr(cli, "mpiexec_beside", lambda: "/venv/bin/mpiexec")
+    monkeypatch.setattr(solver_choice, "available_cores", lambda: 1)
+    assert cli.command_ranks(big)[0] == 1
+
+
+def test_many_cores_give_one_rank_per_five_thousand_vertices_and_overlap_two(monkeypatch):
+    monkeypatch.setattr(solver_choice, "available_cores", lambda: 16)
+    monkeypatch.setattr(cli, "mpiexec_beside", lambda: "/venv/bin/mpiexec")
+    for name in LAUNCHER_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    assert cli.command_ranks(scene("shell.subdivision.levels=4"))[0] == 8  # 41 730 vertices
+    assert cli.command_ranks(scene("shell.subdivision.levels=4",
+                                   "shell.solver.layout='overlap'"))[0] == 2
+
+
+def test_launcher_variables_are_recognised():
+    assert under_launcher({"PMI_SIZE": "2", "PMI_RANK": "0"})
+    assert under_launcher({"OMPI_COMM_WORLD_SIZE": "4"})
+    assert not under_launcher({"PATH": "/usr/bin", "SLURM_JOB_ID": "7"})
+
+
+def summary(out: Path) -> dict:
+    return json.loads((out / "summary.json").read_text())
+
+
+@pytest.mark.skipif(available_cores() < 2 or mpiexec_beside() is None,
+                    reason="needs two cores and the wheel's mpiexec")
+def test_the_command_goes_on_two_ranks_and_agrees_with_one_process(tmp_path):
+    auto = wrinkles("run", str(DEFAULT_SCENE), "--out", str(tmp_path / "auto"),
+                    *LEVELS_3, *SMALL_LOAD)
+    assert auto.returncode == 0, auto.stderr
+    assert "10434 shell vertices, 2 cores: running on 2 MPI ranks" in auto.stdout
+    one = wrinkles("run", str(DEFAULT_SCENE), "--out", str(tmp_path / "one"), *LEVELS_3,
+                   *SMALL_LOAD, "--set", "shell.solver.threads=1")
+    assert one.returncode == 0, one.stderr
+    assert "MPI ranks" not in one.stdout
+    ranks, serial = summary(tmp_path / "auto"), summary(tmp_path / "one")
+    assert (ranks["run"]["ranks"], serial["run"]["ranks"]) == (2, 1)
+    assert ranks["run"]["command"].split()[1:3] == ["run", str(DEFAULT_SCENE)]
+    np.testing.assert_allclose(ranks["frames"][0]["energy"], serial["frames"][0]["energy"],
+                               rtol=1e-9)  # the body's energy (Newton rtol 1e-9)
+    w2, w1 = (s["frames"][0]["details"]["shell_energy"] for s in (ranks, serial))
+    assert w1 > 0 and abs(w2 - w1) <= 1e-6 * w1  # to the Newton tolerance (measured 2e-15)
+    assert ranks["frames"][0]["details"]["shell_converged"] is True
+    assert (tmp_path / "auto" / "shell.xdmf").is_file()

@@ -211,16 +211,17 @@ def spread_table(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
           f"{'runs':>4} {'shell its':>18} {'failed %':>9} {'frames s':>20} {'final W':>36}")
     table = []
     keys = dict.fromkeys((r["scene"], r["code"], r["ranks"]) for r in rows)
-    for scene, code, ranks in keys:
-        runs = [r for r in rows if (r["scene"], r["code"], r["ranks"]) == (scene, code, ranks)]
+    for scene, code, asked in keys:
+        runs = [r for r in rows if (r["scene"], r["code"], r["ranks"]) == (scene, code, asked)]
+        ranks = max(r.get("run_ranks", asked) for r in runs)
         ok = [r for r in runs if r["exit"] == 0]
         if not ok:
             continue
         its = [sum(r["shell_iterations"]) for r in ok]
         failed = [100.0 * sum(r["failed_factorizations"]) / max(sum(r["factorizations"]), 1)
                   for r in ok]
-        times = [r["frames_cpu"] if r["frames_cpu"] is not None
-                 and r.get("run_ranks", ranks) == 1 else r["frames_wall"] for r in ok]
+        times = [r["frames_cpu"] if r["frames_cpu"] is not None and ranks == 1
+                 else r["frames_wall"] for r in ok]
         energy = [_last_energy(r["shell_energy"]) for r in ok]
         entry = {"scene": scene, "code": code, "ranks": ranks, "runs": len(ok),
                  "failed_runs": len(runs) - len(ok),

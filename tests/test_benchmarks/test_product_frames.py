@@ -68,6 +68,19 @@ def test_the_spread_table_gives_mean_min_and_max_over_the_seeds_and_counts_faile
     assert entry["failed_percent"]["mean"] == (100 * 5 / 35 + 100 * 10 / 50) / 2
 
 
+def test_a_serial_command_that_went_on_two_ranks_is_timed_by_its_wall():
+    """A large shell's serial command relaunches on the cores: its CPU is rank 0's only."""
+    rows = [{"scene": "bunny_drop", "code": "this", "ranks": 1, "run_ranks": 2, "seed": 0,
+             "exit": 0, "shell_iterations": [5], "factorizations": [5],
+             "failed_factorizations": [0], "frames_cpu": 3.0, "frames_wall": 4.0,
+             "shell_energy": [1.0]}]
+    (entry,) = spread_table(rows)
+    assert entry["ranks"] == 2 and entry["frames_time"]["mean"] == 4.0
+    rows[0]["run_ranks"] = 1
+    (entry,) = spread_table(rows)
+    assert entry["ranks"] == 1 and entry["frames_time"]["mean"] == 3.0
+
+
 def test_the_spread_of_a_scene_without_a_shell_has_times_and_no_energy():
     rows = [{"scene": "drop_block", "code": "this", "ranks": 1, "seed": seed, "exit": 0,
              "shell_iterations": [0, 0], "factorizations": [0, 0],

@@ -23,10 +23,15 @@ LAUNCHER_VARIABLES: tuple[str, ...] = ("PMI_SIZE", "PMI_RANK", "PMIX_RANK",
 other PMI launchers, PMIx, Open MPI): a process that has one was started as MPI ranks."""
 
 
+def mpiexec_beside() -> str | None:
+    """Return the ``mpiexec`` beside this interpreter (the wheel's, the same MPI), else None."""
+    beside = Path(sys.executable).with_name("mpiexec")
+    return str(beside) if beside.exists() else None
+
+
 def mpiexec_path() -> str | None:
     """Return the ``mpiexec`` beside this interpreter, else the one on ``PATH``, else None."""
-    beside = Path(sys.executable).with_name("mpiexec")
-    return str(beside) if beside.exists() else shutil.which("mpiexec")
+    return mpiexec_beside() or shutil.which("mpiexec")
 
 
 def python_on_ranks(ranks: int) -> list[str]:
@@ -42,12 +47,6 @@ def python_on_ranks(ranks: int) -> list[str]:
 def under_launcher(environ: Mapping[str, str]) -> bool:
     """Whether ``environ`` is that of a process an MPI launcher started (even on one rank)."""
     return any(name in environ for name in LAUNCHER_VARIABLES)
-
-
-def mpiexec_beside() -> str | None:
-    """Return the ``mpiexec`` beside this interpreter (the wheel's, the same MPI), else None."""
-    beside = Path(sys.executable).with_name("mpiexec")
-    return str(beside) if beside.exists() else None
 
 
 def relaunch_on_ranks(ranks: int, args: Sequence[str]) -> NoReturn:

@@ -46,6 +46,7 @@ from wrinkles.output import one_line
 from wrinkles.provenance import version_text
 
 if TYPE_CHECKING:
+    from wrinkles.overlap import Sizes
     from wrinkles.scene import Scene
 
 AGREE_SECONDS = 10.0
@@ -134,13 +135,14 @@ def command_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def command_ranks(scene: Scene) -> tuple[int, str]:
+def command_ranks(scene: Scene, sizes: Callable[[], Sizes] | None = None) -> tuple[int, str]:
     """Ranks a serial ``wrinkles run`` of ``scene`` runs on, and why (1: this process).
 
     More than one only for a process no MPI launcher started, with the wheel's ``mpiexec``
     beside the interpreter, a scene whose shell :func:`solvers.solver_choice.choose_ranks`
-    gives ranks for (its mesh read once here to count them); an ``"overlap"`` layout takes
-    two.
+    gives ranks for; an ``"overlap"`` layout takes two. ``sizes`` counts the unknowns
+    (default: :func:`wrinkles.overlap.scene_sizes`, a read of the mesh), called only when
+    some shell size would give ranks.
     """
     from solvers.solver_choice import available_cores, choose_ranks
     from wrinkles.overlap import scene_sizes
@@ -149,9 +151,9 @@ def command_ranks(scene: Scene) -> tuple[int, str]:
     if shell is None or under_launcher(os.environ) or mpiexec_beside() is None:
         return 1, ""
     cores = available_cores()
-    if shell.solver.threads or cores < 2:
+    if choose_ranks(shell.solver.threads, sys.maxsize, cores) == 1:  # no size would go
         return 1, ""
-    vertices = scene_sizes(scene).shell_vertices
+    vertices = (sizes or (lambda: scene_sizes(scene)))().shell_vertices
     ranks = choose_ranks(shell.solver.threads, vertices, cores)
     if shell.solver.layout == "overlap":
         ranks = min(ranks, 2)
@@ -226,8 +228,9 @@ def command_check(args: argparse.Namespace) -> int:
                                          caps.surface.faces,
                                          static=scene.body.dynamics == "static")
         resolved["shell"]["cap_flips"] = caps.flips
-        resolved["shell"]["layout_on_2_ranks"] = layout_for(scene, 2, lambda: scene_sizes(scene))
-        resolved["shell"]["ranks_of_a_serial_run"] = command_ranks(scene)[0]
+        sizes = functools.cache(lambda: scene_sizes(scene))  # one read of the mesh for both
+        resolved["shell"]["layout_on_2_ranks"] = layout_for(scene, 2, sizes)
+        resolved["shell"]["ranks_of_a_serial_run"] = command_ranks(scene, sizes)[0]
         if scene.shell.monolithic_two_way:
             split = choose_joint_split(2, resolved["shell"]["vertices"],
                                        resolved["shell"]["solver"]["method"])

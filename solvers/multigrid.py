@@ -1196,7 +1196,7 @@ def multigrid_cg(comm: Any, operators: list[Any], smoothers: list[Any], interpol
         pc.getMGSmoother(level).setOperators(op, smoother)
     ksp.setOperators(operators[-1])
     python = options.eigen_estimate == "solve"
-    coarse_amg = len(operators) == 2 and operators[0].getSize()[0] >= COARSE_AMG_FROM
+    coarse_amg = coarse_by_amg(operators[0].getSize()[0], len(operators), comm.size)
     values = pcmg_options(options.smoother_degree, "python" if python else options.smoother_pc,
                           distributed=comm.size > 1, coarse_amg=coarse_amg)
     db = PETSc.Options()
@@ -1217,20 +1217,33 @@ def multigrid_cg(comm: Any, operators: list[Any], smoothers: list[Any], interpol
 
 
 COARSE_AMG_FROM: int = 2000
-"""Coarse-level unknowns of a one-level hierarchy from which the V-cycle's coarse solve is one
-algebraic multigrid cycle (PETSc's GAMG) instead of a Cholesky factorisation."""
+"""Coarse-level unknowns from which the V-cycle's coarse solve is one algebraic multigrid cycle
+(PETSc's GAMG) instead of a Cholesky factorisation (:func:`coarse_by_amg`)."""
+
+
+def coarse_by_amg(unknowns: int, levels: int, ranks: int) -> bool:
+    """Whether a coarse level of ``unknowns`` is one GAMG cycle rather than a Cholesky factor.
+
+    From :data:`COARSE_AMG_FROM` unknowns: in a one-level hierarchy (``levels == 2``: the
+    coarse level is the body's whole surface, a quarter to a half of the shell), and in a
+    hierarchy of any depth over several ranks (``ranks > 1``), where a Cholesky coarse level
+    is factorised and solved whole on every rank at every set-up and V-cycle while the GAMG
+    cycle runs over the ranks' own rows. A deeper serial hierarchy keeps the Cholesky: there
+    the two cost the same and the Cholesky is the stronger coarse solve
+    (docs/notes/multigrid.md).
+    """
+    return unknowns >= COARSE_AMG_FROM and (levels == 2 or ranks > 1)
 
 
 def pcmg_options(degree: int, smoother_pc: str, distributed: bool = False,
                  coarse_amg: bool = False) -> dict[str, str]:
     """PETSc options (below the solver's prefix) of the level smoothers and the coarse solve.
 
-    ``coarse_amg`` (a hierarchy of one subdivision level whose coarse level, the body's whole
-    surface with the cluster penalty assembled in, has :data:`COARSE_AMG_FROM` unknowns or
-    more): the coarse level is applied as one GAMG V-cycle (PCGAMG's defaults, smoothed
-    aggregation and Chebyshev smoothers: a fixed symmetric operator, so the outer CG stays
-    CG), set up again at every Newton matrix; a Cholesky of the elbow's 2 523 coarse unknowns
-    cost 87 MFlop and most of the frames' CG time (docs/notes/multigrid.md). Any other coarse
+    ``coarse_amg`` (:func:`coarse_by_amg`: a large coarse level): the coarse level is applied
+    as one GAMG V-cycle (PCGAMG's defaults, smoothed aggregation and Chebyshev smoothers: a
+    fixed symmetric operator, so the outer CG stays CG), set up again at every Newton matrix;
+    a Cholesky of the elbow's 2 523 coarse unknowns cost 87 MFlop and most of the frames' CG
+    time (docs/notes/multigrid.md). Any other coarse
     level is factorised by MUMPS Cholesky in METIS's ordering (``ICNTL(7) = 5``, as the
     direct path). Over several ranks a Cholesky coarse level is held whole by every rank and
     solved there alone (``PCREDUNDANT``: a distributed solve of a small system costs its

@@ -13,11 +13,11 @@ from meshes.shells import grid_plate, icosphere
 from models.shell.energy import ShellEnergy
 from solvers.linear import AugmentedPenaltySolver
 from solvers.multigrid import (
-    COARSE_AMG_FROM,
     MultigridLinearSystem,
     MultigridOptions,
     ShellHierarchy,
     _SymmetricCopy,
+    coarse_by_amg,
     eisenstat_walker,
 )
 from solvers.phase_space import petsc_aij
@@ -400,19 +400,21 @@ def test_a_retry_with_another_shift_moves_the_levels_exactly() -> None:
                                                     strict=True))
 
 
-@pytest.mark.parametrize(("plate", "coarse_pc", "max_its"),
-                         [(12, "cholesky", 40), (26, "gamg", 200)])
-def test_a_one_level_hierarchy_solves_its_coarse_level_by_size(plate: int, coarse_pc: str,
-                                                                max_its: int) -> None:
+@pytest.mark.parametrize(("plate", "levels", "coarse_pc", "max_its"),
+                         [(12, 1, "cholesky", 40), (26, 1, "gamg", 200),
+                          (26, 2, "cholesky", 40)])
+def test_a_serial_hierarchy_solves_its_coarse_level_by_size_and_depth(
+        plate: int, levels: int, coarse_pc: str, max_its: int) -> None:
     """One subdivision level: the coarse level is the body's surface. From
     ``COARSE_AMG_FROM`` unknowns (27 x 27 coarse vertices: 2 187) it is one GAMG cycle, not a
     Cholesky; CG still reaches a true residual of 1e-8 and the direct solve's step. The AMG
     cycle is the weaker preconditioner on this flat plate's Gauss-Newton matrix (measured: 139
     CG iterations to 1e-8 where a Cholesky of the same coarse level takes 12); the product's
-    inexact Newton steps pay less per cycle (docs/notes/multigrid.md)."""
-    hier = ShellHierarchy.build(*grid_plate(plate, plate), levels=1)
+    inexact Newton steps pay less per cycle (docs/notes/multigrid.md). A deeper serial
+    hierarchy keeps the Cholesky at any size (``coarse_by_amg``)."""
+    hier = ShellHierarchy.build(*grid_plate(plate, plate), levels=levels)
     coarse = 3 * (plate + 1) ** 2
-    assert (coarse >= COARSE_AMG_FROM) == (coarse_pc == "gamg")
+    assert coarse_by_amg(coarse, levels + 1, 1) == (coarse_pc == "gamg")
     energy, x0 = compressed_plate(hier, clusters=max(4, len(hier.vertices) // 75))
     ev = energy.evaluate(x0, hessian="gauss_newton")
     assert ev.grad is not None and ev.hess is not None and ev.penalty_factor is not None

@@ -1196,7 +1196,8 @@ def multigrid_cg(comm: Any, operators: list[Any], smoothers: list[Any], interpol
         pc.getMGSmoother(level).setOperators(op, smoother)
     ksp.setOperators(operators[-1])
     python = options.eigen_estimate == "solve"
-    coarse_amg = coarse_by_amg(operators[0].getSize()[0], len(operators), comm.size)
+    coarse_amg = coarse_by_amg(operators[0].getSize()[0], len(operators), comm.size,
+                               options.phase_space)
     values = pcmg_options(options.smoother_degree, "python" if python else options.smoother_pc,
                           distributed=comm.size > 1, coarse_amg=coarse_amg)
     db = PETSc.Options()
@@ -1221,18 +1222,20 @@ COARSE_AMG_FROM: int = 2000
 (PETSc's GAMG) instead of a Cholesky factorisation (:func:`coarse_by_amg`)."""
 
 
-def coarse_by_amg(unknowns: int, levels: int, ranks: int) -> bool:
+def coarse_by_amg(unknowns: int, levels: int, ranks: int, deflated: bool) -> bool:
     """Whether a coarse level of ``unknowns`` is one GAMG cycle rather than a Cholesky factor.
 
     From :data:`COARSE_AMG_FROM` unknowns: in a one-level hierarchy (``levels == 2``: the
     coarse level is the body's whole surface, a quarter to a half of the shell), and in a
-    hierarchy of any depth over several ranks (``ranks > 1``), where a Cholesky coarse level
-    is factorised and solved whole on every rank at every set-up and V-cycle while the GAMG
-    cycle runs over the ranks' own rows. A deeper serial hierarchy keeps the Cholesky: there
-    the two cost the same and the Cholesky is the stronger coarse solve
-    (docs/notes/multigrid.md).
+    deeper hierarchy over several ranks (``ranks > 1``) whose CG the phase space deflates
+    (``deflated``): a Cholesky coarse level is factorised and solved whole on every rank at
+    every set-up and V-cycle, the GAMG cycle runs over the ranks' own rows. A deeper serial
+    hierarchy keeps the Cholesky (there the two cost the same and the Cholesky is the
+    stronger coarse solve), and so does a V-cycle without the phase space (the two-way joint
+    CG's shell block, where the weaker coarse solve costs more CG iterations than it saves;
+    docs/notes/multigrid.md).
     """
-    return unknowns >= COARSE_AMG_FROM and (levels == 2 or ranks > 1)
+    return unknowns >= COARSE_AMG_FROM and (levels == 2 or (ranks > 1 and deflated))
 
 
 def pcmg_options(degree: int, smoother_pc: str, distributed: bool = False,

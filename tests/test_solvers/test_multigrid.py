@@ -414,7 +414,7 @@ def test_a_serial_hierarchy_solves_its_coarse_level_by_size_and_depth(
     hierarchy keeps the Cholesky at any size (``coarse_by_amg``)."""
     hier = ShellHierarchy.build(*grid_plate(plate, plate), levels=levels)
     coarse = 3 * (plate + 1) ** 2
-    assert coarse_by_amg(coarse, levels + 1, 1) == (coarse_pc == "gamg")
+    assert coarse_by_amg(coarse, levels + 1, 1, True) == (coarse_pc == "gamg")
     energy, x0 = compressed_plate(hier, clusters=max(4, len(hier.vertices) // 75))
     ev = energy.evaluate(x0, hessian="gauss_newton")
     assert ev.grad is not None and ev.hess is not None and ev.penalty_factor is not None

@@ -107,19 +107,22 @@ PRODUCT = ["--phase-space", "--eigen-estimate", "solve", "--forcing", "eisenstat
 
 
 @pytest.mark.mpi
-@pytest.mark.parametrize(("ranks", "grid", "levels", "coarse_pc"),
-                         [(2, 27, 1, "gamg"), (3, 27, 1, "gamg"), (2, 20, 1, "redundant"),
-                          (2, 27, 2, "gamg")])
+@pytest.mark.parametrize(("ranks", "grid", "levels", "extra", "coarse_pc"),
+                         [(2, 27, 1, [], "gamg"), (3, 27, 1, [], "gamg"),
+                          (2, 20, 1, [], "redundant"), (2, 27, 2, ["--phase-space"], "gamg"),
+                          (2, 27, 2, [], "redundant")])
 def test_ranks_run_a_large_coarse_level_as_one_distributed_amg_cycle(
-        mpiexec, ranks: int, grid: int, levels: int, coarse_pc: str) -> None:
-    """A 27 x 27 plate subdivided once or twice: the coarse level (2 352 unknowns, from
+        mpiexec, ranks: int, grid: int, levels: int, extra: list[str], coarse_pc: str) -> None:
+    """A 27 x 27 plate subdivided once: the coarse level (2 352 unknowns, from
     ``COARSE_AMG_FROM``) is one GAMG cycle over the ranks' own rows, not a Cholesky repeated
-    whole on every rank, in a hierarchy of any depth; a 20 x 20 plate's coarse level (1 323)
-    stays a Cholesky held whole by every rank (``PCREDUNDANT``). CG to 1e-8 reaches the direct
-    solve's step either way (measured gap 1.4e-7 on 2 ranks, 233 CG iterations, at one level;
-    3.0e-7 and 286 at two; the redundant cycle took 226 at one)."""
+    whole on every rank; a 20 x 20 plate's coarse level (1 323) stays a Cholesky held whole by
+    every rank (``PCREDUNDANT``). Subdivided twice, the large coarse level is a GAMG cycle
+    when the phase space deflates the CG and a redundant Cholesky when it does not (the
+    two-way joint CG's V-cycle). CG to 1e-8 reaches the direct solve's step either way
+    (measured gap 1.4e-7 on 2 ranks, 233 CG iterations, at one level; 3.0e-7 and 286 at two,
+    1.2e-8 and 18 with the Cholesky; the redundant cycle took 226 at one)."""
     out = _result(mpiexec([SCRIPT, "--grid", str(grid), "--levels", str(levels),
-                           "--one-step", "0"], n=ranks, timeout=180))
+                           "--one-step", "0", *extra], n=ranks, timeout=180))
     print(out)
     assert out["ranks"] == ranks and out["coarse_pc"] == coarse_pc
     assert out["gap"] < 1e-5

@@ -20,7 +20,8 @@ its own vertices on every level and PETSc does the products and the messages.
   assembled on the fine levels: level ``l`` applies ``A_l + G_l^T G_l`` matrix-free
   (``G_l = G_{l+1} P_l``, rows owned by the cluster's owner), Jacobi reads
   ``diag(A_l) + colsum(G_l .* G_l)``, and the coarsest level ``A_0 + G_0^T G_0`` is
-  assembled and factorised by MUMPS Cholesky on all ranks.
+  assembled and factorised by MUMPS Cholesky on all ranks, or applied as one GAMG cycle over
+  the ranks when it is large (:func:`solvers.multigrid.coarse_by_amg`).
 * CG (unpreconditioned norm) with Chebyshev/Jacobi smoothing (Briggs, Henson & McCormick, A
   Multigrid Tutorial, ch. 3), the forcing term of :func:`solvers.multigrid.forcing_term`
   (Eisenstat & Walker 1996, choice 2) and the true relative residual as acceptance test.

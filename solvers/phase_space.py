@@ -24,7 +24,8 @@ so ``span Z`` holds every coarse-scale modulation of the amplitude and phase of 
 (the per-hat frame keeps two independent derivatives, ``n . grad = 0``). Z's pattern is fixed
 (the hats'); its values follow x every Newton iteration. The coarse matrix
 ``A_Z = Z^T (A + tau I + G^T G) Z`` (``Z^T A Z`` over 3 x 3 vertex blocks, on ranks each
-rank's rows summed, plus ``tau Z^T Z`` and ``(G Z)^T (G Z)``) is factorised by MUMPS LDL^T;
+rank's rows summed, plus ``tau Z^T Z`` and ``(G Z)^T (G Z)``) is factorised by MUMPS LDL^T
+in the ordering of fewer flops on its pattern (:func:`solvers.linear.cheapest_ordering`);
 its inertia tells whether it is positive definite (else the multigrid runs alone for that
 matrix: ``Z^T A Z`` indefinite means A is). A zero column (no wrinkles under a hat) is kept
 with a unit diagonal so the pattern never changes.
@@ -52,7 +53,12 @@ from models.backend import PETSc
 from models.shell.rest import area_weighted_normals
 from solvers.block_galerkin import entry_keys
 from solvers.block_phase import BlockPhaseProduct, TransposeBlockProduct
-from solvers.linear import FactorReport, LinearSolverOptions, SparseDirectSolver
+from solvers.linear import (
+    FactorReport,
+    LinearSolverOptions,
+    SparseDirectSolver,
+    cheapest_ordering,
+)
 
 TEST_FIELDS: int = 3
 """Test fields per hat: the wrinkle displacement and its derivatives along the hat's two
@@ -285,9 +291,10 @@ class CoarseSpace:
             self._base = (values.copy(), tau)
         diagonal = values[self._sum.diagonal]  # a zero column (no wrinkles under a hat): 1
         values[self._sum.diagonal] = np.where(diagonal > 0, diagonal, diagonal + 1.0)
-        if self._solver is None:
-            self._solver = SparseDirectSolver(self._sum.pattern,
-                                              LinearSolverOptions(symmetric="ldlt"))
+        if self._solver is None:  # a new pattern: its cheaper ordering, found once
+            self._solver, report = cheapest_ordering(self._sum.matrix(values),
+                                                     LinearSolverOptions(symmetric="ldlt"))
+            return report
         return self._solver.factorize(self._sum.matrix(values))
 
     def _column_sums(self, sums: np.ndarray) -> np.ndarray:

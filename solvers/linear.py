@@ -694,11 +694,10 @@ minimum fill (docs/notes/phase-space.md)."""
 
 
 def cheapest_ordering(matrix: sp.spmatrix, options: LinearSolverOptions,
-                      candidates: tuple[str, ...] = ORDERING_CANDIDATES,
                       ) -> tuple[SparseDirectSolver, FactorReport]:
     """Build a solver for ``matrix``'s pattern in the ordering of the fewest factor flops.
 
-    ``matrix`` is factorised once in each MUMPS ordering of ``candidates``; the solver of the
+    ``matrix`` is factorised once in each of :data:`ORDERING_CANDIDATES`; the solver of the
     smallest analysis estimate (``FactorReport.factor_flops``, MUMPS RINFOG(1): a function of
     the pattern and the ordering, so every rank holding the same pattern chooses alike) is
     kept, factorised, and the others are destroyed. A backend other than MUMPS, or an
@@ -715,7 +714,7 @@ def cheapest_ordering(matrix: sp.spmatrix, options: LinearSolverOptions,
         solver = SparseDirectSolver(matrix, options)
         return solver, solver.factorize(matrix)
     tried = []
-    for ordering in candidates:
+    for ordering in ORDERING_CANDIDATES:
         solver = SparseDirectSolver(matrix, replace(options, ordering=ordering))
         tried.append((solver, solver.factorize(matrix)))
     costs = [r.factor_flops if r.success and r.factor_flops is not None else np.inf

@@ -24,10 +24,10 @@ so ``span Z`` holds every coarse-scale modulation of the amplitude and phase of 
 (the per-hat frame keeps two independent derivatives, ``n . grad = 0``). Z's pattern is fixed
 (the hats'); its values follow x every Newton iteration. The coarse matrix
 ``A_Z = Z^T (A + tau I + G^T G) Z`` (``Z^T A Z`` over 3 x 3 vertex blocks, on ranks each
-rank's rows summed, plus ``tau Z^T Z`` and ``(G Z)^T (G Z)``) is factorised by MUMPS LDL^T in
-:func:`solvers.linear.cheapest_ordering`; its inertia tells whether it is positive definite
-(else the multigrid runs alone for that matrix: ``Z^T A Z`` indefinite means A is). A zero
-column (no wrinkles under a hat) is kept with a unit diagonal so the pattern never changes.
+rank's rows summed, plus ``tau Z^T Z`` and ``(G Z)^T (G Z)``) is factorised by MUMPS LDL^T
+(ordering: :func:`solvers.linear.cheapest_ordering`); its inertia tells whether it is
+positive definite (else the multigrid runs alone for that matrix: ``Z^T A Z`` indefinite means
+A is). A zero column (no wrinkles under a hat) keeps a unit diagonal: the pattern never changes.
 
 The correction enters CG as the deflation preconditioner A-DEF2 of Tang, Nabben, Vuik &
 Erlangga (J. Sci. Comput. 39, 2009), ``P = M + Q (I - A M)`` with ``Q = Z A_Z^{-1} Z^T`` and M

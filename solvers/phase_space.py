@@ -251,6 +251,23 @@ class CoarseSpace:
         scale_columns(self.values, self.column, scale)
         self._base, self._gram = None, (self._gram[0], None)
 
+    def set_fields(self, x: np.ndarray, target: np.ndarray) -> None:
+        """Z's values from the positions x and the penalty target y (both ``(n, 3)``)."""
+        raise NotImplementedError  # each subclass writes its own Z
+
+    def refresh(self, fine: sp.csr_matrix, g: Any, tau: float,
+                state: tuple[np.ndarray, np.ndarray] | None, shift_only: bool) -> FactorReport:
+        """:meth:`update`, after new test fields from ``state`` unless ``shift_only``.
+
+        ``state``: the ``(x, y)`` the fields are built from (:func:`field_state`; None: the
+        rest positions). ``shift_only``: the matrix and fields of the last update, another
+        shift (see :meth:`update`).
+        """
+        if not shift_only:
+            x, y = state if state is not None else (self.rest,) * 2
+            self.set_fields(x, y)
+        return self.update(fine, g, tau, shift_only=shift_only)
+
     def update(self, fine: sp.csr_matrix, g: Any, tau: float = 0.0,
                shift_only: bool = False) -> FactorReport:
         """Factorise ``Z^T (A + tau I + G^T G) Z``.

@@ -331,14 +331,10 @@ class SplitMultigridSystem(KrylovBase):
         self._phase_ready = False
         if self.phase is None or not self.phase_active:
             return None
-        shift_only = same_matrix and not self._fields_stale
-        if not shift_only:
-            x, y = self._state if self._state is not None else (self.phase.rest,) * 2
-            self.phase.set_fields(x, y)
-            self._fields_stale = False
         penalty = self._penalty[-1]
-        report = self.phase.update(rows, None if penalty is None else penalty[0], tau,
-                                   shift_only=shift_only)
+        report = self.phase.refresh(rows, None if penalty is None else penalty[0], tau,
+                                    self._state, same_matrix and not self._fields_stale)
+        self._fields_stale = False
         self._phase_ready = report.usable_spd
         return report
 

@@ -20,8 +20,9 @@ per scene and code:
   code that does not record it and for runs on several ranks, the frames' wall time, marked
   ``*``: a serial, one-thread run on an idle core has CPU = wall, rank 0's CPU leaves out the
   other ranks' work) and wall time, and seconds per frame;
-* the process's total user + system CPU (``resource.getrusage`` of the child: set-up, JIT and
-  output included);
+* the whole command's wall time (``cmd s``: from its start to its exit, the ranks' launch,
+  imports, set-up and output included, what a user waits for) and the process's total user +
+  system CPU (``resource.getrusage`` of the child: set-up, JIT and output included);
 * the final shell energy, the most self-intersecting face pairs of any frame (``x-pairs``,
   ``-`` for code that does not count them) and the frames whose shell solve did not
   converge;
@@ -177,7 +178,8 @@ def print_row(scene: str, label: str, r: dict[str, Any]) -> None:
           f"{r['frames']:>3} {sum(r['body_iterations']):>6} {sum(r['shell_iterations']):>6} "
           f"{total:>6} {failed:>6} "
           f"{shown:9.2f}{mark} {shown / n:8.2f} {r['frames_wall']:8.2f} {speedup} {memory} "
-          f"{r['process_cpu']:8.2f} {_last_energy(r['shell_energy']):12.6e} "
+          f"{r['process_wall']:7.2f} {r['process_cpu']:8.2f} "
+          f"{_last_energy(r['shell_energy']):12.6e} "
           f"{_most_pairs(r.get('self_intersections')):>7} {r['unconverged'] or ''}", flush=True)
 
 
@@ -195,7 +197,8 @@ def _last_energy(values: list[float | None] | None) -> float:
 
 HEADER = (f"{'scene':>18} {'code':>8} {'np':>2} {'method':>9} {'thr':>3} {'frm':>3} "
           f"{'body':>6} {'its':>6} {'facts':>6} {'failed':>6} {'frames s':>10} {'s/frame':>8} "
-          f"{'wall s':>8} {'speed':>6} {'mem MB':>7} {'proc CPU':>8} {'final W':>12} "
+          f"{'wall s':>8} {'speed':>6} {'mem MB':>7} {'cmd s':>7} {'proc CPU':>8} "
+          f"{'final W':>12} "
           f"{'x-pairs':>7} unconverged")
 
 

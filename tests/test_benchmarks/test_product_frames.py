@@ -44,6 +44,7 @@ def test_this_tree_and_head_run_the_same_tiny_frame(tmp_path):
         assert row["frames"] == 1 and row["unconverged"] == []
         assert row["method"] == "direct"  # 165 vertices: below the multigrid crossover
         assert sum(row["shell_iterations"]) > 0 and row["frames_wall"] > 0
+        assert row["process_wall"] > row["frames_wall"]  # the command: set-up and output too
     assert rows["this"]["frames_cpu"] > 0
     listed = subprocess.run(["git", "-C", str(REPO), "worktree", "list"], capture_output=True,
                             text=True, check=True).stdout

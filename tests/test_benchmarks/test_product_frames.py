@@ -32,6 +32,8 @@ def test_summary_row_counts_failed_factorisations_and_reads_the_cpu_time():
     assert summary_row(summary)["frames_cpu"] is None
 
 
+@pytest.mark.slow  # 60-75 s in CI (HEAD's worktree compiles its numba kernels afresh): the suite's
+# slowest case, with the suite at 25-28 of its 30 minutes on 2 cores
 def test_this_tree_and_head_run_the_same_tiny_frame(tmp_path):
     """A 165-vertex shell, one frame, with this tree and with HEAD in a worktree: both rows are
     there and converged, and the worktree is gone afterwards."""

@@ -7,7 +7,7 @@ import subprocess
 
 import pytest
 
-from benchmarks.product_frames import REPO, main, spread_table, summary_row
+from benchmarks.product_frames import HEADER, REPO, main, print_row, spread_table, summary_row
 
 TINY = ["--scenes", "default", "--frames", "1", "--set", "shell.subdivision.levels=0"]
 
@@ -82,6 +82,22 @@ def test_a_serial_command_that_went_on_two_ranks_is_timed_by_its_wall():
     rows[0]["run_ranks"] = 1
     (entry,) = spread_table(rows)
     assert entry["ranks"] == 1 and entry["frames_time"]["mean"] == 3.0
+
+
+def test_a_row_shows_the_whole_command_wall_under_its_header(capsys):
+    """``cmd s`` is the command's wall (launch, set-up, output), beside the frames' wall."""
+    summary = {"run": {"shell": {"solver": {"method": "multigrid", "threads": 1}}},
+               "frames": [{"frame": 1, "wall_time": 2.5, "cpu_time": 2.25, "details": {
+                   "shell_iterations": 4, "shell_factorizations": 5, "shell_energy": 0.5,
+                   "shell_converged": True, "shell_self_intersections": 0}}]}
+    row = {"exit": 0, "ranks": 1, "process_wall": 7.75, "process_cpu": 7.5} | summary_row(summary)
+    print_row("default", "this", row)
+    cells = dict(zip(HEADER.replace("cmd s", "cmd_s").replace("frames s", "frames_s")
+                     .replace("s/frame", "s_frame").replace("wall s", "wall_s")
+                     .replace("mem MB", "mem_MB").replace("proc CPU", "proc_CPU")
+                     .replace("final W", "final_W").split(),
+                     capsys.readouterr().out.split(), strict=False))
+    assert cells["cmd_s"] == "7.75" and cells["wall_s"] == "2.50" and cells["proc_CPU"] == "7.50"
 
 
 def test_the_spread_of_a_scene_without_a_shell_has_times_and_no_energy():

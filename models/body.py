@@ -82,6 +82,14 @@ class PinSpec:
         """``"box"`` or ``"plane"``: how the pin selects its nodes."""
         return "plane" if self.box is None else "box"
 
+    def describe(self) -> str:
+        """Describe the selection in the scene's terms: its box or plane and ``tol`` [m]."""
+        if self.box is None:
+            where = f"the plane through {_point(self.point)} with normal {_point(self.normal)}"
+        else:
+            where = f"the box from {_point(self.box[0])} to {_point(self.box[1])}"
+        return f"{where} (tol {self.tol:g} m)"
+
     def select(self, X: np.ndarray) -> np.ndarray:
         """Boolean mask of the rows of ``X`` ((n, 3) reference positions) that are pinned."""
         if self.box is None:
@@ -171,11 +179,36 @@ def pin_conflicts(pins: tuple[PinSpec, ...] | list[PinSpec], X: np.ndarray,
     return out
 
 
-def refuse_empty_pins(pins: Sequence[PinSpec], counts: Sequence[int]) -> None:
-    """Raise InputError naming the first pin that holds no node (``counts``: nodes per pin)."""
+def refuse_empty_pins(pins: Sequence[PinSpec], counts: Sequence[int],
+                      span: tuple[np.ndarray, np.ndarray]) -> None:
+    """Raise InputError naming the first pin that holds no node.
+
+    Args:
+        pins: The pins, in the scene's order.
+        counts: Nodes each pin holds.
+        span: Smallest and largest reference coordinates of the mesh's nodes, (3,) each [m]:
+            the message gives them, so that a region drawn for another frame or scale shows.
+
+    """
     for index, (pin, count) in enumerate(zip(pins, counts, strict=True)):
         if count == 0:
-            raise InputError(f"body.pins[{index}]: selects no node of the mesh ({pin})")
+            lo, hi = (np.asarray(a, dtype=float) for a in span)
+            extent = float(max(np.abs(lo).max(), np.abs(hi).max()))
+            lo, hi = _rounded(lo, extent), _rounded(hi, extent)
+            ranges = ", ".join(f"{axis} {a:.4g} .. {b:.4g}"
+                               for axis, a, b in zip("xyz", lo, hi, strict=True))
+            raise InputError(f"body.pins[{index}]: {pin.describe()} selects no node of the "
+                             f"mesh, whose nodes span {ranges} m")
+
+
+def _point(v: Sequence[float] | np.ndarray) -> str:
+    """``(x, y, z)`` to four significant digits."""
+    return "(" + ", ".join(f"{float(c):.4g}" for c in v) + ")"
+
+
+def _rounded(v: np.ndarray, extent: float) -> np.ndarray:
+    """``v`` with the coordinates within ``1e-12 max(1, extent)`` of 0 printed as 0."""
+    return np.where(np.abs(v) <= 1e-12 * max(1.0, extent), 0.0, v)
 
 
 def refuse_pin_conflicts(found: Sequence[tuple[int, int, int, np.ndarray]],
@@ -198,9 +231,8 @@ def refuse_pin_conflicts(found: Sequence[tuple[int, int, int, np.ndarray]],
         return
     i, j, k, nodes = found[0]
     count = sum(len(n) for (a, b, c, n) in found if (a, b, c) == (i, j, k))
-    x, y, z = np.where(np.abs(nodes[0]) <= 1e-12 * max(1.0, extent), 0.0, nodes[0])
     raise InputError(f"body.pins[{i}] and body.pins[{j}] both hold {count} node(s) (the first "
-                     f"at ({x:.4g}, {y:.4g}, {z:.4g}) m) in component {'xyz'[k]} with "
+                     f"at {_point(_rounded(nodes[0], extent))} m) in component {'xyz'[k]} with "
                      "different motions; leave the shared nodes to one pin (narrow its box or "
                      "tol, or its components) or move them alike")
 

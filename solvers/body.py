@@ -226,7 +226,12 @@ class Body:
         self.pin_nodes: list[int] = [
             int(self.mesh.comm.allreduce(int(np.count_nonzero(nodes < owned)), op=MPI.SUM))
             for nodes in selected]
-        refuse_empty_pins(self.options.pins, self.pin_nodes)
+        if 0 in self.pin_nodes:  # the same counts on every rank: all of them gather the span
+            span = [np.full(3, np.inf), np.full(3, -np.inf)]
+            self.mesh.comm.Allreduce(X[:owned].min(axis=0, initial=np.inf), span[0], op=MPI.MIN)
+            self.mesh.comm.Allreduce(X[:owned].max(axis=0, initial=-np.inf), span[1],
+                                     op=MPI.MAX)
+            refuse_empty_pins(self.options.pins, self.pin_nodes, (span[0], span[1]))
         for pin, nodes in zip(self.options.pins, selected, strict=True):
             for k in pin.components:
                 dofs = (3 * nodes + k).astype(np.int32)

@@ -41,7 +41,7 @@ def check_mesh_set_up(scene: Scene, tet: TetMesh) -> dict[str, Any]:
     X = np.asarray(tet.points)
     pins = scene.body.pins
     counts = [int(np.count_nonzero(pin.select(X))) for pin in pins]
-    refuse_empty_pins(pins, counts)
+    refuse_empty_pins(pins, counts, (X.min(axis=0), X.max(axis=0)))
     refuse_pin_conflicts([(c.first, c.second, c.component, X[c.nodes])
                           for c in pin_conflicts(pins, X)], float(np.abs(X).max(initial=0.0)))
     warn_pins(scene, counts)

@@ -276,10 +276,12 @@ def command(name: str, scene: Path, out: Path) -> list[str]:
 
 @pytest.mark.parametrize("name", ["run", "check"])
 def test_pin_selecting_no_node_refused(tmp_path, capsys, name):
+    """The message names the pin's region and the span of the mesh's nodes (the 10 cm box)."""
     doc = set_key(base_scene(), "body.pins", [{"point": [0.0, 0.0, 5.0]}])
     scene = write_scene(tmp_path, doc)
     assert_refused(*run_cli(capsys, *command(name, scene, tmp_path / "out")),
-                   "body.pins[0]", "selects no node")
+                   "body.pins[0]: the plane through (0, 0, 5) with normal (0, 0, 1) (tol 1e-08 m)",
+                   "selects no node", "x 0 .. 0.1, y 0 .. 0.1, z 0 .. 0.1 m")
 
 
 CONFLICTING_PINS = [{"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0], "tol": 1e-6},
@@ -323,7 +325,7 @@ def test_check_reports_the_vertices_each_pin_holds(tmp_path, capsys):
 
 
 @pytest.mark.mpi
-@pytest.mark.parametrize("case", ["scene", "mesh", "resume", "pins"])
+@pytest.mark.parametrize("case", ["scene", "mesh", "resume", "pins", "empty_pin"])
 def test_bad_input_on_two_ranks_exits_1_without_deadlock(tmp_path, mpiexec, case):
     doc = base_scene()
     extra: list[str] = []
@@ -331,6 +333,8 @@ def test_bad_input_on_two_ranks_exits_1_without_deadlock(tmp_path, mpiexec, case
         set_key(doc, "material.nu", 0.5)
     elif case == "pins":  # found on the nodes of one rank or of both
         set_key(doc, "body.pins", CONFLICTING_PINS)
+    elif case == "empty_pin":  # the span of every rank's nodes, gathered
+        set_key(doc, "body.pins", [{"box": [[0.2, 0.0, 0.0], [0.3, 0.1, 0.1]]}])
     elif case == "mesh":
         points, cells = mesh_case("vertex_nonmanifold")
         meshio.write_points_cells(tmp_path / "body.vtu", points, cells)
@@ -344,7 +348,11 @@ def test_bad_input_on_two_ranks_exits_1_without_deadlock(tmp_path, mpiexec, case
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: "), proc.stderr
     assert re.search({"scene": "nu", "mesh": "body.vtu", "resume": "checkpoint",
-                      "pins": r"body\.pins\[0\] and body\.pins\[1\]"}[case],
+                      "pins": r"body\.pins\[0\] and body\.pins\[1\]",
+                      "empty_pin": r"body\.pins\[0\]: the box from \(0\.2, 0, 0\) to "
+                                   r"\(0\.3, 0\.1, 0\.1\) \(tol 1e-08 m\) selects no node "
+                                   r"of the mesh, whose nodes span x 0 \.\. 0\.1, y 0 \.\. "
+                                   r"0\.1, z 0 \.\. 0\.1 m$"}[case],
                      lines[0])
 
 

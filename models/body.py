@@ -237,6 +237,62 @@ def refuse_pin_conflicts(found: Sequence[tuple[int, int, int, np.ndarray]],
                      "tol, or its components) or move them alike")
 
 
+RIGID_MOTIONS: tuple[str, ...] = ("translation along x", "translation along y",
+                                  "translation along z", "rotation about x", "rotation about y",
+                                  "rotation about z")
+"""The columns of :func:`rigid_motion_gram`, in its order."""
+
+
+def held_components(pins: Sequence[PinSpec], X: np.ndarray) -> np.ndarray:
+    """``(n, 3)`` mask: component ``k`` of node ``i`` (reference position ``X[i]``) is held."""
+    X = np.asarray(X, dtype=float).reshape(-1, 3)
+    held = np.zeros(X.shape, dtype=bool)
+    for pin in pins:
+        held[np.ix_(pin.select(X), list(pin.components))] = True
+    return held
+
+
+def rigid_motion_gram(held: np.ndarray, X: np.ndarray, center: np.ndarray,
+                      length: float) -> np.ndarray:
+    """Gram matrix ``C^T C`` of the rigid motions' held components, (6, 6).
+
+    ``C`` has a row per held (node ``i``, component ``k``) and a column per rigid motion of
+    :data:`RIGID_MOTIONS`: component ``k`` at ``X_i`` of the translation ``e_j`` or of the
+    rotation ``e_j x (X_i - center) / length``. A rigid motion ``m`` the pins leave free has
+    ``C m = 0`` (a static body's Newton systems are then singular). A sum over nodes: the
+    ranks' matrices of their owned nodes add up to the whole body's.
+
+    Args:
+        held: :func:`held_components` of the nodes.
+        X: Their reference positions, (n, 3) [m].
+        center: Point the rotations are about [m] (the held nodes' centroid names them best).
+        length: Length scale of the rotations' columns [m] (> 0).
+
+    """
+    r = (np.asarray(X, dtype=float).reshape(-1, 3) - np.asarray(center)) / length
+    gram = np.zeros((6, 6))
+    for k in range(3):
+        rows = r[held[:, k]]
+        c = np.zeros((rows.shape[0], 6))
+        c[:, k] = 1.0
+        for j in range(3):  # (e_j x r)_k = eps_{k j l} r_l
+            c[:, 3 + j] = np.cross(np.eye(3)[j], rows)[:, k]
+        gram += c.T @ c
+    return gram
+
+
+def free_rigid_motions(gram: np.ndarray, rtol: float = 1e-10) -> tuple[int, list[str]]:
+    """How many rigid motions ``gram`` leaves free, and which of :data:`RIGID_MOTIONS` are.
+
+    The count is that of the eigenvalues of ``gram`` at most ``rtol max(1, lambda_max)``; a
+    named motion has its own column's norm ``gram[j, j]`` that small (a free combination of
+    several, e.g. a rotation about an axis away from ``center``, counts but is not named).
+    """
+    limit = rtol * max(1.0, float(np.abs(gram).max()))
+    count = int(np.count_nonzero(np.linalg.eigvalsh(gram) <= limit))
+    return count, [name for j, name in enumerate(RIGID_MOTIONS) if gram[j, j] <= limit]
+
+
 @dataclass(frozen=True)
 class BodyOptions:
     """Discretisation, time integration, loads and boundary conditions of the body.

@@ -327,11 +327,10 @@ def prepare_body(scene: Scene, out: Path, comm: MPI.Comm, say: Callable[[str], N
     say(f"body: P{scene.body.degree}, {body.V.dofmap.index_map.size_global * 3} dofs, forms "
         f"compiled" + (f"; pins hold {', '.join(map(str, body.pin_nodes))} nodes"
                        if body.pin_nodes else ""))
-    if comm.rank == 0:
-        warn_pins(scene, body.pin_nodes)
+    nodes = body.V.tabulate_dof_coordinates()[: body.V.dofmap.index_map.size_local]
+    warn_pins(scene, body.pin_nodes, nodes, comm, comm.rank == 0)
     stages: list[tuple[str, Stage]] = [("body", body_stage(body, scene.time.steps_per_frame))]
     run = Run(scene, out, body, stages)
-    nodes = body.V.tabulate_dof_coordinates()[: body.V.dofmap.index_map.size_local]
     check_obstacles_clear(nodes, mean_cell_size(mesh), scene, comm, comm.rank == 0)
     if scene.rigid is not None and scene.rigid.balls:
         owned = np.arange(mesh.topology.index_map(3).size_local)

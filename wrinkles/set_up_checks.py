@@ -18,7 +18,15 @@ import meshes
 from meshes.errors import InputError
 from meshes.tetmesh import TetMesh, max_edge_lengths
 from models.backend import MPI
-from models.body import pin_conflicts, refuse_empty_pins, refuse_pin_conflicts
+from models.body import (
+    PinSpec,
+    free_rigid_motions,
+    held_components,
+    pin_conflicts,
+    refuse_empty_pins,
+    refuse_pin_conflicts,
+    rigid_motion_gram,
+)
 from models.embedding.embedding import AffineMaps, affine_maps_of, min_barycentric
 from wrinkles.scene import Scene
 
@@ -44,7 +52,7 @@ def check_mesh_set_up(scene: Scene, tet: TetMesh) -> dict[str, Any]:
     refuse_empty_pins(pins, counts, (X.min(axis=0), X.max(axis=0)))
     refuse_pin_conflicts([(c.first, c.second, c.component, X[c.nodes])
                           for c in pin_conflicts(pins, X)], float(np.abs(X).max(initial=0.0)))
-    warn_pins(scene, counts)
+    warn_pins(scene, counts, X, MPI.COMM_SELF)
     h_mean = float(max_edge_lengths(tet.points, tet.tets).mean())  # dolfinx's Mesh.h of a tet
     check_obstacles_clear(X, h_mean, scene, MPI.COMM_SELF)
     check_balls_outside(affine_maps_of(X[tet.tets]), np.arange(tet.n_tets), scene,
@@ -52,24 +60,57 @@ def check_mesh_set_up(scene: Scene, tet: TetMesh) -> dict[str, Any]:
     return {"pin_nodes": counts}
 
 
-def warn_pins(scene: Scene, counts: list[int]) -> None:
-    """Warn about a static scene without pins and a pin holding fewer than 3 nodes.
+def warn_pins(scene: Scene, counts: list[int], nodes: np.ndarray, comm: Any,
+              warn: bool = True) -> None:
+    """Warn about a static scene's missing pins or free rigid motions, and tiny pins (collective).
+
+    A static scene without pins, pins that leave rigid motions free, a pin holding fewer
+    than 3 nodes. The free rigid motions are :func:`models.body.free_rigid_motions` over
+    every rank's nodes, the rotations about the held nodes' centroid.
 
     Args:
         scene: The scene.
         counts: Nodes each of ``scene.body.pins`` holds.
+        nodes: Reference positions of the rank's own nodes, (n, 3) [m].
+        comm: The body's communicator.
+        warn: Issue the warnings (one rank of several).
 
     """
-    if scene.body.dynamics == "static" and not scene.body.pins:
+    pins, static = scene.body.pins, scene.body.dynamics == "static"
+    free = _free_rigid_motions(pins, np.asarray(nodes, dtype=float), comm) if static and pins \
+        else (0, [])
+    if not warn:
+        return
+    if static and not pins:
         warnings.warn("body.pins: a static scene without pins has no unique solution (the "
                       "body's rigid motions are free; frictionless contacts do not hold it): "
                       "add [[body.pins]] or use body.dynamics = \"implicit_euler\"",
                       meshes.MeshWarning, stacklevel=3)
-    for index, (pin, count) in enumerate(zip(scene.body.pins, counts, strict=True)):
+    if free[0]:
+        names = ", ".join(free[1]) or "combinations of translations and rotations"
+        warnings.warn(f"body.pins: the pins of this static scene leave {free[0]} rigid "
+                      f"motion(s) of the body free ({names}): its equilibrium is not unique "
+                      "and its Newton systems are singular; hold more components (e.g. "
+                      "components = [0, 1, 2] on one pin) or use body.dynamics = "
+                      "\"implicit_euler\"", meshes.MeshWarning, stacklevel=3)
+    for index, (pin, count) in enumerate(zip(pins, counts, strict=True)):
         if count < 3:
             warnings.warn(f"body.pins[{index}]: holds only {count} node(s) of the mesh (a "
                           f"{pin.kind} pin with tol = {pin.tol:g}); widen tol or the region",
                           meshes.MeshWarning, stacklevel=3)
+
+
+def _free_rigid_motions(pins: tuple[PinSpec, ...], nodes: np.ndarray,
+                        comm: Any) -> tuple[int, list[str]]:
+    """:func:`models.body.free_rigid_motions` of the pins over every rank's ``nodes``."""
+    held = held_components(pins, nodes)
+    points = nodes[held.any(axis=1)]
+    total = comm.allreduce(np.append(points.sum(axis=0), points.shape[0]), op=MPI.SUM)
+    center = total[:3] / max(total[3], 1.0)
+    reach = float(np.linalg.norm(points - center, axis=1).max(initial=0.0))
+    length = comm.allreduce(reach, op=MPI.MAX) or 1.0
+    return free_rigid_motions(comm.allreduce(rigid_motion_gram(held, nodes, center, length),
+                                             op=MPI.SUM))
 
 
 def check_obstacles_clear(points: np.ndarray, h_mean: float, scene: Scene, comm: Any,

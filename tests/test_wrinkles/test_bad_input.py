@@ -284,6 +284,41 @@ def test_pin_selecting_no_node_refused(tmp_path, capsys, name):
                    "selects no node", "x 0 .. 0.1, y 0 .. 0.1, z 0 .. 0.1 m")
 
 
+ROLLERS = [{"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0], "tol": 1e-6, "components": [2]}]
+"""The base cube's bottom face held in z only: free to slide in x and y and to turn about z."""
+FREE_WARNING = ("warning: body.pins: the pins of this static scene leave 3 rigid motion(s) of "
+                "the body free (translation along x, translation along y, rotation about z)")
+
+
+@pytest.mark.parametrize("name", ["run", "check"])
+@pytest.mark.parametrize(("pins", "dynamics", "warned"), [
+    (ROLLERS, "static", True), (ROLLERS, "implicit_euler", False), (None, "static", False)])
+def test_pins_leaving_rigid_motions_free_are_warned_about(tmp_path, capsys, name, pins,
+                                                          dynamics, warned):
+    """In statics only (inertia holds a dynamic body); the base scene's clamped face holds
+    all six motions."""
+    doc = set_key(base_scene(), "body.dynamics", dynamics)
+    if pins is not None:
+        set_key(doc, "body.pins", pins)
+    scene = write_scene(tmp_path, doc)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code, err = run_cli(capsys, *command(name, scene, tmp_path / "out"))
+    assert code == 0, err
+    said = [str(w.message) for w in caught]
+    assert any(FREE_WARNING.removeprefix("warning: ") in m for m in said) == warned, said
+
+
+@pytest.mark.mpi
+def test_free_rigid_motions_are_found_over_the_ranks_nodes(tmp_path, mpiexec):
+    """On two ranks the body's nodes are split: the same warning, once."""
+    scene = write_scene(tmp_path, set_key(base_scene(), "body.pins", ROLLERS))
+    proc = mpiexec(["-m", "wrinkles", "run", str(scene), "--out", str(tmp_path / "out")],
+                   n=2, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.count(FREE_WARNING) == 1, proc.stderr
+
+
 CONFLICTING_PINS = [{"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0], "tol": 1e-6},
                     {"point": [0.0, 0.0, 0.0], "normal": [1.0, 0.0, 0.0], "tol": 1e-6,
                      "velocity": [0.0, 0.0, 0.01]}]

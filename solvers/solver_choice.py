@@ -27,8 +27,8 @@ The choices, all by what the run is, not by flags:
   (modified Newton, :class:`solvers.shell_newton.ModifiedNewtonOptions`). A static load
   sequence factorises at every iteration: there the reuse leads the wrinkles onto other
   branches (:func:`choose_factor_reuse`; docs/notes/factor-reuse.md).
-* **Ranks, then threads, by cores and size.** A shell of at least
-  :data:`RANKS_FROM_VERTICES` vertices runs a serial ``wrinkles run`` on the cores as MPI
+* **Ranks, then threads, by cores and size.** A frame of at least :data:`RANKS_FROM_WORK`
+  shell vertices and body dof steps runs a serial ``wrinkles run`` on the cores as MPI
   ranks (:func:`choose_ranks`; two ranks beat two threads, which leave PETSc serial); else a
   serial run of at least :data:`THREADS_FROM_VERTICES` vertices uses the cores this process
   may run on (its CPU affinity) as threads; smaller shells and every rank keep one thread.
@@ -209,33 +209,37 @@ def choose_threads(threads: int, ranks: int, vertices: int) -> int:
     return available_cores() if ranks == 1 and vertices >= THREADS_FROM_VERTICES else 1
 
 
-RANKS_FROM_VERTICES: int = 10000
-"""Shell vertex count from which a serial ``wrinkles run`` runs on the cores as MPI ranks."""
+RANKS_FROM_WORK: int = 10000
+"""Frame work (shell vertices + body dofs x body steps) from which a serial ``wrinkles run``
+runs on the cores as MPI ranks."""
 
-VERTICES_PER_RANK: int = 5000
-"""Fewest shell vertices per rank :func:`choose_ranks` gives (caps the ranks of many cores)."""
+WORK_PER_RANK: int = 5000
+"""Least frame work per rank :func:`choose_ranks` gives (caps the ranks of many cores)."""
 
 
-def choose_ranks(threads: int, vertices: int, cores: int) -> int:
-    """Return the MPI ranks a serial ``wrinkles run`` of a shell should run on (1: stay).
+def choose_ranks(threads: int, work: int, cores: int) -> int:
+    """Return the MPI ranks a serial ``wrinkles run`` should run on (1: stay).
 
-    With ``threads`` 0 ("auto") a shell of at least :data:`RANKS_FROM_VERTICES` vertices
-    takes ``min(cores, vertices // VERTICES_PER_RANK)`` ranks. Ranks split the whole frame
-    (the shell's energy, CG and set-ups, the body, a two-way joint system, or overlap body
-    and shell), where threads speed up only the element kernels and multigrid products;
-    measured on ``wrinkles run`` at 10 434 - 41 730 vertices, one-way and two-way
-    (docs/notes/solver-choice.md, "Ranks for a serial command"). A ``threads`` count the
-    scene names keeps one process.
+    ``work`` is a frame's work in shell-vertex solves: the shell's vertices plus the body's
+    displacement dofs times its steps per frame (one body dof step costs about one shell
+    vertex solve in the shipped scenes, :attr:`wrinkles.overlap.Sizes.body_share`). With
+    ``threads`` 0 ("auto") a frame of at least :data:`RANKS_FROM_WORK` takes ``min(cores,
+    work // WORK_PER_RANK)`` ranks. Ranks split the whole frame (the shell's energy, CG and
+    set-ups, the body, a two-way joint system, or overlap body and shell), where threads
+    speed up only the element kernels and multigrid products; measured on ``wrinkles run``
+    with shells of 10 434 - 41 730 vertices and with bodies of 5 469 - 13 515 dofs under
+    smaller shells (docs/notes/solver-choice.md, "Ranks for a serial command"). A
+    ``threads`` count the scene names keeps one process.
 
     Args:
         threads: ``shell.solver.threads`` (0 = auto).
-        vertices: shell vertices.
+        work: shell vertices + body dofs x body steps per frame.
         cores: cores the process may run on (:func:`available_cores`).
 
     """
-    if threads or vertices < RANKS_FROM_VERTICES:
+    if threads or work < RANKS_FROM_WORK:
         return 1
-    return max(1, min(cores, vertices // VERTICES_PER_RANK))
+    return max(1, min(cores, work // WORK_PER_RANK))
 
 
 SPLIT_JOINT_FROM_VERTICES: int = 4000

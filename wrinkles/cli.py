@@ -11,8 +11,9 @@ far and the checkpoint stay on disk, ``summary.json`` gets ``run.diagnostic`` - 
 cell, energy terms, parameters - which is also printed on stderr as one ``diagnostic:`` JSON
 line) or an unexpected exception (a bug: its traceback is printed).
 
-A ``wrinkles run`` started without ``mpiexec`` on a shell of
-:data:`solvers.solver_choice.RANKS_FROM_VERTICES` vertices or more, threads left to the code,
+A ``wrinkles run`` started without ``mpiexec`` on a frame of
+:data:`solvers.solver_choice.RANKS_FROM_WORK` shell vertices and body dof steps or more,
+threads left to the code,
 replaces itself by ``mpiexec -n N wrinkles run ...`` on the machine's cores
 (:func:`command_ranks`; one line says so; ``--set shell.solver.threads=1`` keeps one process).
 Under MPI every rank runs the same code, split over the ranks; a one-way scene on two ranks may
@@ -139,10 +140,11 @@ def command_ranks(scene: Scene, sizes: Callable[[], Sizes] | None = None) -> tup
     """Ranks a serial ``wrinkles run`` of ``scene`` runs on, and why (1: this process).
 
     More than one only for a process no MPI launcher started, with the wheel's ``mpiexec``
-    beside the interpreter, a scene whose shell :func:`solvers.solver_choice.choose_ranks`
-    gives ranks for; an ``"overlap"`` layout takes two. ``sizes`` counts the unknowns
-    (default: :func:`wrinkles.overlap.scene_sizes`, a read of the mesh), called only when
-    some shell size would give ranks.
+    beside the interpreter, a scene with a shell whose frame work (shell vertices + body
+    dofs x steps) :func:`solvers.solver_choice.choose_ranks` gives ranks for; an
+    ``"overlap"`` layout takes two. ``sizes`` counts the unknowns (default:
+    :func:`wrinkles.overlap.scene_sizes`, a read of the mesh), called only when some size
+    would give ranks.
     """
     from solvers.solver_choice import available_cores, choose_ranks
     from wrinkles.overlap import scene_sizes
@@ -153,11 +155,12 @@ def command_ranks(scene: Scene, sizes: Callable[[], Sizes] | None = None) -> tup
     cores = available_cores()
     if choose_ranks(shell.solver.threads, sys.maxsize, cores) == 1:  # no size would go
         return 1, ""
-    vertices = (sizes or (lambda: scene_sizes(scene)))().shell_vertices
-    ranks = choose_ranks(shell.solver.threads, vertices, cores)
+    size = (sizes or (lambda: scene_sizes(scene)))()
+    ranks = choose_ranks(shell.solver.threads, size.work, cores)
     if shell.solver.layout == "overlap":
         ranks = min(ranks, 2)
-    return ranks, f"{vertices} shell vertices, {cores} cores"
+    return ranks, (f"{size.shell_vertices} shell vertices + {size.body_dofs} body dofs x "
+                   f"{size.steps} step(s), {cores} cores")
 
 
 @contextlib.contextmanager

@@ -11,9 +11,9 @@ from solvers.solver_choice import (
     MULTIGRID_FROM_VERTICES,
     MULTIGRID_STATIC_FROM_LEVELS,
     PHASE_SPACE_FROM_VERTICES,
-    RANKS_FROM_VERTICES,
+    RANKS_FROM_WORK,
     THREADS_FROM_VERTICES,
-    VERTICES_PER_RANK,
+    WORK_PER_RANK,
     WRINKLED_FROM_EDGES,
     choose_linear_method,
     choose_phase_space,
@@ -90,13 +90,14 @@ def test_auto_threads_are_the_cores_of_a_large_serial_shell_else_one(monkeypatch
     assert choose_threads(3, ranks=4, vertices=big) == 3  # a count written by the user is kept
 
 
-@pytest.mark.parametrize(("vertices", "cores", "expected"), [
-    (2610, 2, 1), (RANKS_FROM_VERTICES - 1, 2, 1), (RANKS_FROM_VERTICES, 2, 2), (12534, 2, 2),
-    (41730, 2, 2), (41730, 1, 1), (RANKS_FROM_VERTICES, 8, 2), (41730, 64, 8)])
-def test_a_serial_command_of_a_large_shell_takes_the_cores_as_ranks(vertices, cores, expected):
-    """Ranks on both sides of the crossover, at most one per VERTICES_PER_RANK vertices."""
-    assert RANKS_FROM_VERTICES // VERTICES_PER_RANK == 2
-    assert choose_ranks(0, vertices, cores) == expected
+@pytest.mark.parametrize(("work", "cores", "expected"), [
+    (3126, 2, 1), (RANKS_FROM_WORK - 1, 2, 1), (RANKS_FROM_WORK, 2, 2), (68574, 2, 2),
+    (42246, 2, 2), (42246, 1, 1), (RANKS_FROM_WORK, 8, 2), (42246, 64, 8)])
+def test_a_serial_command_of_a_large_frame_takes_the_cores_as_ranks(work, cores, expected):
+    """Ranks on both sides of the crossover, at most one per WORK_PER_RANK (the default
+    bar 3 126, the bunny's drop 68 574, the bar at 4 levels 42 246)."""
+    assert RANKS_FROM_WORK // WORK_PER_RANK == 2
+    assert choose_ranks(0, work, cores) == expected
 
 
 def test_named_threads_keep_one_process():

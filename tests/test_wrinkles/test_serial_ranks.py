@@ -1,4 +1,5 @@
-"""A serial ``wrinkles run`` of a large shell runs on the machine's cores as MPI ranks."""
+"""A serial ``wrinkles run`` of a large frame (shell, or body under a smaller shell) runs on
+the machine's cores as MPI ranks."""
 
 from __future__ import annotations
 
@@ -7,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support import DEFAULT_SCENE, wrinkles
+from support import DEFAULT_SCENE, EXTERNAL_MESHES, REPO, load_script, wrinkles
 
 from solvers import solver_choice
-from solvers.solver_choice import RANKS_FROM_VERTICES, available_cores
+from solvers.solver_choice import RANKS_FROM_WORK, available_cores
 from wrinkles import cli
 from wrinkles.launch import LAUNCHER_VARIABLES, mpiexec_beside, under_launcher
 from wrinkles.scene import load_scene
@@ -36,10 +37,22 @@ def two_cores(monkeypatch):
 
 
 def test_the_default_scene_stays_in_one_process_at_three_levels_it_takes_two_ranks(two_cores):
-    assert cli.command_ranks(scene())[0] == 1  # 2 610 vertices
+    assert cli.command_ranks(scene())[0] == 1  # 2 610 vertices + 516 body dofs
     ranks, why = cli.command_ranks(scene("shell.subdivision.levels=3"))
-    assert (ranks, why) == (2, "10434 shell vertices, 2 cores")
-    assert 2610 < RANKS_FROM_VERTICES <= 10434
+    assert (ranks, why) == (2, "10434 shell vertices + 516 body dofs x 1 step(s), 2 cores")
+    assert 2610 + 516 < RANKS_FROM_WORK <= 10434 + 516
+
+
+@pytest.mark.skipif(not EXTERNAL_MESHES.is_dir(), reason="../shared/meshes_external missing")
+def test_a_large_body_under_a_small_shell_takes_two_ranks(two_cores, tmp_path):
+    """The cinolib ball dropped (``benchmarks/external_meshes.py``'s scene: 13 515 body dofs
+    x 2 steps under 5 762 shell vertices) goes; the elbow closing (5 469 x 1 + 3 358) stays."""
+    scene_text = load_script(REPO / "benchmarks" / "external_meshes.py").scene_text
+    path = tmp_path / "ball.toml"
+    path.write_text(scene_text(EXTERNAL_MESHES / "cinolib_sphere.mesh", "z", 4))
+    ranks, why = cli.command_ranks(load_scene(path))
+    assert (ranks, why) == (2, "5762 shell vertices + 13515 body dofs x 2 step(s), 2 cores")
+    assert cli.command_ranks(load_scene(REPO / "scenes" / "elbow_closing.toml"))[0] == 1
 
 
 def test_named_threads_or_a_launcher_keep_one_process_a_two_way_shell_goes(two_cores,
@@ -87,7 +100,8 @@ def test_the_command_goes_on_two_ranks_and_agrees_with_one_process(tmp_path):
     auto = wrinkles("run", str(DEFAULT_SCENE), "--out", str(tmp_path / "auto"),
                     *LEVELS_3, *SMALL_LOAD)
     assert auto.returncode == 0, auto.stderr
-    assert "10434 shell vertices, 2 cores: running on 2 MPI ranks" in auto.stdout
+    assert "10434 shell vertices + 516 body dofs x 1 step(s), 2 cores: running on 2 MPI ranks" \
+        in auto.stdout
     one = wrinkles("run", str(DEFAULT_SCENE), "--out", str(tmp_path / "one"), *LEVELS_3,
                    *SMALL_LOAD, "--set", "shell.solver.threads=1")
     assert one.returncode == 0, one.stderr

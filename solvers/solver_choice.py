@@ -222,7 +222,7 @@ def choose_ranks(threads: int, work: int, cores: int) -> int:
 
     ``work`` is a frame's work in shell-vertex solves: the shell's vertices plus the body's
     displacement dofs times its steps per frame (one body dof step costs about one shell
-    vertex solve in the shipped scenes, :attr:`wrinkles.overlap.Sizes.body_share`). With
+    vertex solve in the shipped scenes; the application's overlap layout weighs the same). With
     ``threads`` 0 ("auto") a frame of at least :data:`RANKS_FROM_WORK` takes ``min(cores,
     work // WORK_PER_RANK)`` ranks. Ranks split the whole frame (the shell's energy, CG and
     set-ups, the body, a two-way joint system, or overlap body and shell), where threads

@@ -13,9 +13,9 @@ line) or an unexpected exception (a bug: its traceback is printed).
 
 A ``wrinkles run`` started without ``mpiexec`` on a frame of
 :data:`solvers.solver_choice.RANKS_FROM_WORK` shell vertices and body dof steps or more,
-threads left to the code,
-replaces itself by ``mpiexec -n N wrinkles run ...`` on the machine's cores
-(:func:`command_ranks`; one line says so; ``--set shell.solver.threads=1`` keeps one process).
+threads left to the code, replaces itself by ``mpiexec -n N wrinkles run ...`` on the
+machine's cores (:func:`command_ranks`; one line says so; ``--set shell.solver.threads=1``
+keeps one process).
 Under MPI every rank runs the same code, split over the ranks; a one-way scene on two ranks may
 instead overlap its body and shell stages, one rank each (:mod:`wrinkles.overlap`, chosen by
 ``shell.solver.layout``). Errors raised on all ranks (scene validation, mesh

@@ -77,7 +77,7 @@ def warn_pins(scene: Scene, counts: list[int], nodes: np.ndarray, comm: Any,
 
     """
     pins, static = scene.body.pins, scene.body.dynamics == "static"
-    free = _free_rigid_motions(pins, np.asarray(nodes, dtype=float), comm) if static and pins \
+    free = _free_motions_over_ranks(pins, np.asarray(nodes, dtype=float), comm) if static and pins \
         else (0, [])
     if not warn:
         return
@@ -100,7 +100,7 @@ def warn_pins(scene: Scene, counts: list[int], nodes: np.ndarray, comm: Any,
                           meshes.MeshWarning, stacklevel=3)
 
 
-def _free_rigid_motions(pins: tuple[PinSpec, ...], nodes: np.ndarray,
+def _free_motions_over_ranks(pins: tuple[PinSpec, ...], nodes: np.ndarray,
                         comm: Any) -> tuple[int, list[str]]:
     """:func:`models.body.free_rigid_motions` of the pins over every rank's ``nodes``."""
     held = held_components(pins, nodes)

@@ -5,36 +5,94 @@ never directly: the ``dolfinx-solver-real`` wheel requires ``import dolfinx_solv
 mpi4py, petsc4py or dolfinx are loaded (it orders one MPI runtime ahead of the compiled
 bindings), and keeping the dolfinx-version-specific calls in this module means a dolfinx
 upgrade touches one file.
+
+The stack is loaded on first use (lazy loading as in the Scientific Python ecosystem's SPEC 1):
+the five names are stand-ins that import the whole stack, in the wheel's order, when one of
+their attributes is first read (:func:`load_stack`). Importing this code therefore neither
+loads dolfinx nor initialises MPI: a command that reads a scene and sizes its mesh (the rank
+count of a serial ``wrinkles run``, ``wrinkles plot``) does without the stack.
 """
 
 from __future__ import annotations
 
+import functools
+import importlib
 from collections.abc import Mapping
+from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    import basix
+    import basix.ufl
+    import dolfinx
+    import dolfinx.fem
+    import dolfinx.fem.petsc
+    import dolfinx.io
+    import dolfinx.mesh
     import numpy.typing as npt
+    import ufl
+    from mpi4py import MPI
+    from petsc4py import PETSc
 
-import dolfinx_solver  # noqa: F401  (must precede mpi4py, petsc4py and dolfinx)
+STACK: tuple[str, ...] = ("basix", "basix.ufl", "dolfinx", "dolfinx.fem", "dolfinx.fem.petsc",
+                          "dolfinx.io", "dolfinx.mesh", "ufl", "mpi4py.MPI", "petsc4py.PETSc")
+"""The modules of the stack, imported in this order after ``dolfinx_solver``."""
 
-import basix  # noqa: E402
-import basix.ufl  # noqa: E402
-import dolfinx  # noqa: E402
-import dolfinx.fem  # noqa: E402
-import dolfinx.fem.petsc  # noqa: E402
-import dolfinx.io  # noqa: E402
-import dolfinx.mesh  # noqa: E402
-import ufl  # noqa: E402
-from mpi4py import MPI  # noqa: E402
-from petsc4py import PETSc  # noqa: E402
 
-__all__ = ["MPI", "PETSc", "basix", "dolfinx", "ufl", "DOLFINX_VERSION", "begin_petsc_log",
+@functools.cache
+def load_stack() -> None:
+    """Import the stack (``dolfinx_solver`` first), start PETSc's log; once per process.
+
+    Importing ``mpi4py.MPI`` initialises MPI. PETSc's list of unread options at exit is
+    switched off: it would also name options of a solver a run never calls (the static Newton
+    of a dynamic body); the scene's expert options are checked where they are set
+    (``solvers.body_newton.unread_options``: an InputError naming the key).
+    """
+    import dolfinx_solver  # noqa: F401  (must precede mpi4py, petsc4py and dolfinx)
+
+    for name in STACK:
+        importlib.import_module(name)
+    begin_petsc_log()
+    from petsc4py import PETSc
+
+    PETSc.Options().setValue("options_left", "0")
+
+
+def is_loaded() -> bool:
+    """Whether this process has loaded the stack (and so initialised MPI)."""
+    return load_stack.cache_info().currsize > 0
+
+
+class _OnFirstUse:
+    """Stand-in for a module of the stack: the first attribute read loads the stack."""
+
+    def __init__(self, name: str) -> None:
+        self.__dict__["_name"] = name
+        self.__dict__["_module"] = None
+
+    def __getattr__(self, attr: str) -> Any:
+        module: ModuleType | None = self._module
+        if module is None:
+            load_stack()
+            module = self.__dict__["_module"] = importlib.import_module(self._name)
+        return getattr(module, attr)
+
+    def __repr__(self) -> str:
+        return f"<module {self._name!r}, loaded on first use>"
+
+
+if not TYPE_CHECKING:
+    MPI = _OnFirstUse("mpi4py.MPI")
+    PETSc = _OnFirstUse("petsc4py.PETSc")
+    basix = _OnFirstUse("basix")
+    dolfinx = _OnFirstUse("dolfinx")
+    ufl = _OnFirstUse("ufl")
+
+__all__ = ["MPI", "PETSc", "basix", "dolfinx", "ufl", "begin_petsc_log", "is_loaded", "load_stack",
            "mesh_from_arrays",
            "vector_space", "is_affine", "global_scalar", "quadrature_expression",
            "global_min_on_cells", "exterior_facet_domain", "with_facet_domains",
            "assemble_snes_residual", "petsc_error_message", "set_from_options"]
-
-DOLFINX_VERSION: str = dolfinx.__version__
 
 
 def begin_petsc_log() -> None:
@@ -42,15 +100,13 @@ def begin_petsc_log() -> None:
 
     ``PETSc.Log.begin()`` (``PetscLogDefaultBegin``) is collective on ``PETSC_COMM_WORLD``:
     called from code that runs on rank 0 only (a serial shell solve) it deadlocks. It is
-    therefore called once here, at import on every rank (every module imports the stack from
-    this one), and :mod:`solvers.linear` only reads the events (analysis / numeric
-    factorisation times from ``PETSc.Log.Event(name).getPerfInfo()``). Idempotent.
+    therefore called once when the stack loads, which every rank does (every module reaches
+    the stack through this one), and :mod:`solvers.linear` only reads the events. Idempotent.
     """
+    from petsc4py import PETSc
+
     if not PETSc.Log.isActive():
         PETSc.Log.begin()
-
-
-begin_petsc_log()
 
 
 def set_from_options(solver: Any, options: Mapping[str, Any]) -> None:
@@ -86,12 +142,6 @@ def petsc_error_message(err: Exception) -> str:
     words = [line.split("] ", 1)[1] for line in lines[1:]
              if line.startswith("[") and "] " in line and "() at " not in line]
     return "; ".join(words) if words else (lines[0] if lines else repr(err))
-
-
-# PETSc's list of unread options at exit would also name options of a solver a run never
-# calls (the static Newton of a dynamic body); the scene's expert options are checked where
-# they are set instead (``solvers.body_newton.unread_options``: an InputError naming the key).
-PETSc.Options().setValue("options_left", "0")
 
 
 # --- body helpers (dolfinx-0.11-specific calls used by models/body.py) ------------------------

@@ -102,22 +102,32 @@ def add_scene_arguments(parser: ArgumentParser) -> ArgumentParser:
 
 
 def command_run(args: argparse.Namespace) -> int:
-    """Load the scene, apply ``--frames`` and ``--set``, run it (collective)."""
-    from models.backend import MPI
+    """Load the scene, apply ``--frames`` and ``--set``, run it (collective).
+
+    A serial command decides its ranks (:func:`command_ranks`) before the FE stack loads;
+    when it goes on to ranks, the scene's warnings are left to them (said once, not twice).
+    """
     from wrinkles.overlap import choose_layout, run_overlapped
     from wrinkles.runner import prepare, record_failure, report_done, run_frames
     from wrinkles.scene import load_scene, with_frames
 
-    scene = load_scene(args.scene, args.overrides)
-    if args.frames is not None:
-        scene = with_frames(scene, args.frames)
-    comm = MPI.COMM_WORLD
-    if args.command_line is not None and comm.size == 1:
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        scene = load_scene(args.scene, args.overrides)
+        if args.frames is not None:
+            scene = with_frames(scene, args.frames)
+    if args.command_line is not None:
         ranks, why = command_ranks(scene)
         if ranks > 1:
             print(f"wrinkles: {why}: running on {ranks} MPI ranks (mpiexec -n {ranks}; "
-                  "--set shell.solver.threads=1 keeps one process)", flush=True)
+                  f"{STAY_SERIAL[scene.shell is None]} keeps one process)", flush=True)
             relaunch_on_ranks(ranks, args.command_line)
+    for warning in said:
+        warnings.warn_explicit(warning.message, warning.category, warning.filename,
+                               warning.lineno)
+    from models.backend import MPI
+
+    comm = MPI.COMM_WORLD
     out = args.out if args.out is not None else Path("out") / args.scene.stem
     if choose_layout(scene, comm) == "overlap":
         with frame_progress(scene.time.frames, comm.size) as log:
@@ -134,6 +144,11 @@ def command_run(args: argparse.Namespace) -> int:
             abort_alone(exc)
         raise SolverError(record_failure(run, exc)) from None
     return 0
+
+
+STAY_SERIAL: dict[bool, str] = {False: "--set shell.solver.threads=1",
+                                True: "mpiexec -n 1 wrinkles run ..."}
+"""How to keep a serial run in one process, for a scene with a shell (False) or without."""
 
 
 def command_ranks(scene: Scene, sizes: Callable[[], Sizes] | None = None) -> tuple[int, str]:
@@ -309,7 +324,8 @@ def abort_alone(exc: BaseException) -> NoReturn:
 def agreement_comm() -> Any:
     """Duplicate of COMM_WORLD used only to agree on failures (never mixed with solver traffic).
 
-    Creating it is collective: :func:`main` calls this on every rank before any work.
+    Creating it is collective: :func:`main` calls this on every rank of a launched job before
+    any work (a process no launcher started is alone: it never needs one).
     """
     from models.backend import MPI
 
@@ -335,7 +351,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return report(exc)
     args.command_line = sys.argv[1:] if argv is None else None
     try:
-        agreement_comm()
+        if under_launcher(os.environ):  # a process of its own needs no agreement
+            agreement_comm()
         return COMMANDS[args.command](args)
     except Exception as exc:  # noqa: BLE001  (mapped to exit codes, see module doc)
         return fail_collectively(exc)

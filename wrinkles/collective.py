@@ -7,11 +7,13 @@ of waiting forever in the next collective call. :func:`on_root` broadcasts the o
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from typing import cast
 
 from meshes.errors import WrinklesError
 from models.backend import MPI
+from wrinkles.launch import under_launcher
 
 
 def on_root[T](comm: MPI.Comm, make: Callable[[], T]) -> T | None:
@@ -32,6 +34,15 @@ def on_root[T](comm: MPI.Comm, make: Callable[[], T]) -> T | None:
     if failure is not None:
         raise failure[0](failure[1])
     return value
+
+
+def world_root() -> bool:
+    """Whether this process is rank 0 of ``COMM_WORLD``.
+
+    A process no MPI launcher started is alone, so rank 0, without loading the stack
+    (:func:`wrinkles.launch.under_launcher`); a launched one asks MPI.
+    """
+    return not under_launcher(os.environ) or MPI.COMM_WORLD.rank == 0
 
 
 def shared[T](comm: MPI.Comm, make: Callable[[], T]) -> T:

@@ -31,11 +31,11 @@ from typing import Any, Literal
 
 from meshes.errors import InputError
 from meshes.validate import MeshWarning
-from models.backend import MPI
 from models.body import BodyOptions
 from models.materials import Material
 from models.rigid import RigidBallOptions, RigidCouplingOptions, RigidOptions, scheme
 from solvers.body_newton import NewtonOptions
+from wrinkles.collective import world_root
 from wrinkles.config import (
     Source,
     build,
@@ -338,7 +338,7 @@ def warn_added_tables(path: Path, keys: frozenset[str]) -> None:
     defaults of every other key: what the user asked for, or a key meant for another scene.
     Rank 0 warns (every rank loads the scene).
     """
-    if MPI.COMM_WORLD.rank != 0:
+    if not world_root():
         return
     written = read_toml(path)
     for table in OPTIONAL_TABLES:

@@ -4,6 +4,8 @@ the machine's cores as MPI ranks."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -90,6 +92,28 @@ def test_launcher_variables_are_recognised():
     assert not under_launcher({"PATH": "/usr/bin", "SLURM_JOB_ID": "7"})
 
 
+DECIDE_WITHOUT_STACK = """
+import sys
+from wrinkles.cli import command_ranks
+from wrinkles.overlap import scene_sizes
+from wrinkles.scene import load_scene
+scene = load_scene(sys.argv[1], ["shell.subdivision.levels=3", "rigid.balls=[]"])
+print(scene_sizes(scene).work, command_ranks(scene)[0] >= 1)
+print(sorted(m for m in ("dolfinx", "mpi4py", "petsc4py", "ufl") if m in sys.modules))
+"""
+"""Load a scene with a warning, size it, decide its ranks; print which stack modules loaded."""
+
+
+def test_the_rank_decision_loads_no_fe_stack_and_no_mpi():
+    """A serial command decides whether to go on to ranks before dolfinx loads or MPI starts:
+    the relaunch pays the scene's own imports only (models.backend loads the stack on use)."""
+    done = subprocess.run([sys.executable, "-c", DECIDE_WITHOUT_STACK, str(DEFAULT_SCENE)],
+                          cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == ["10950 True", "[]"]  # 10 434 vertices + 516 dofs
+    assert "has no [rigid] table" in done.stderr
+
+
 def summary(out: Path) -> dict:
     return json.loads((out / "summary.json").read_text())
 
@@ -98,10 +122,11 @@ def summary(out: Path) -> dict:
                     reason="needs two cores and the wheel's mpiexec")
 def test_the_command_goes_on_two_ranks_and_agrees_with_one_process(tmp_path):
     auto = wrinkles("run", str(DEFAULT_SCENE), "--out", str(tmp_path / "auto"),
-                    *LEVELS_3, *SMALL_LOAD)
+                    *LEVELS_3, *SMALL_LOAD, "--set", "rigid.balls=[]")
     assert auto.returncode == 0, auto.stderr
     assert "10434 shell vertices + 516 body dofs x 1 step(s), 2 cores: running on 2 MPI ranks" \
         in auto.stdout
+    assert auto.stderr.count("has no [rigid] table") == 1  # said by the ranks, not twice
     one = wrinkles("run", str(DEFAULT_SCENE), "--out", str(tmp_path / "one"), *LEVELS_3,
                    *SMALL_LOAD, "--set", "shell.solver.threads=1")
     assert one.returncode == 0, one.stderr

@@ -28,8 +28,9 @@ The choices, all by what the run is, not by flags:
   sequence factorises at every iteration: there the reuse leads the wrinkles onto other
   branches (:func:`choose_factor_reuse`; docs/notes/factor-reuse.md).
 * **Ranks, then threads, by cores and size.** A frame of at least :data:`RANKS_FROM_WORK`
-  shell vertices and body dof steps runs a serial ``wrinkles run`` on the cores as MPI
-  ranks (:func:`choose_ranks`; two ranks beat two threads, which leave PETSc serial); else a
+  shell vertices and body dof steps (a body alone :data:`RANKS_FROM_BODY_WORK`) runs a
+  serial ``wrinkles run`` on the cores as MPI ranks (:func:`choose_ranks`; two ranks beat
+  two threads, which leave PETSc serial); else a
   serial run of at least :data:`THREADS_FROM_VERTICES` vertices uses the cores this process
   may run on (its CPU affinity) as threads; smaller shells and every rank keep one thread.
 * **The two-way joint system over the ranks by size.** Under MPI the joint body-shell system
@@ -211,33 +212,41 @@ def choose_threads(threads: int, ranks: int, vertices: int) -> int:
 
 RANKS_FROM_WORK: int = 10000
 """Frame work (shell vertices + body dofs x body steps) from which a serial ``wrinkles run``
-runs on the cores as MPI ranks."""
+of a scene with a shell runs on the cores as MPI ranks."""
+
+RANKS_FROM_BODY_WORK: int = 20000
+"""Frame work (body dofs x body steps) from which a serial run of a scene without a shell
+runs on the cores as MPI ranks: a body's frame costs less per unit of work than a shell's
+(5-7 Newton iterations against tens), so the fixed cost of the relaunch (a second start of
+the interpreter and its imports) needs a larger frame to pay back over a short run."""
 
 WORK_PER_RANK: int = 5000
 """Least frame work per rank :func:`choose_ranks` gives (caps the ranks of many cores)."""
 
 
-def choose_ranks(threads: int, work: int, cores: int) -> int:
+def choose_ranks(threads: int, work: int, cores: int, shell: bool = True) -> int:
     """Return the MPI ranks a serial ``wrinkles run`` should run on (1: stay).
 
     ``work`` is a frame's work in shell-vertex solves: the shell's vertices plus the body's
     displacement dofs times its steps per frame (one body dof step costs about one shell
     vertex solve in the shipped scenes; the application's overlap layout weighs the same). With
-    ``threads`` 0 ("auto") a frame of at least :data:`RANKS_FROM_WORK` takes ``min(cores,
-    work // WORK_PER_RANK)`` ranks. Ranks split the whole frame (the shell's energy, CG and
-    set-ups, the body, a two-way joint system, or overlap body and shell), where threads
-    speed up only the element kernels and multigrid products; measured on ``wrinkles run``
-    with shells of 10 434 - 41 730 vertices and with bodies of 5 469 - 13 515 dofs under
-    smaller shells (docs/notes/solver-choice.md, "Ranks for a serial command"). A
-    ``threads`` count the scene names keeps one process.
+    ``threads`` 0 ("auto") a frame of at least :data:`RANKS_FROM_WORK` (without a shell
+    :data:`RANKS_FROM_BODY_WORK`) takes ``min(cores, work // WORK_PER_RANK)`` ranks. Ranks
+    split the whole frame (the shell's energy, CG and set-ups, the body, a two-way joint
+    system, or overlap body and shell), where threads speed up only the element kernels and
+    multigrid products; measured on ``wrinkles run`` with shells of 10 434 - 41 730 vertices,
+    bodies of 5 469 - 13 515 dofs under smaller shells and bodies of 5 469 - 14 010 dofs
+    alone (docs/notes/solver-choice.md, "Ranks for a serial command"). A ``threads`` count
+    the scene names keeps one process.
 
     Args:
-        threads: ``shell.solver.threads`` (0 = auto).
+        threads: ``shell.solver.threads`` (0 = auto; 0 for a scene without a shell).
         work: shell vertices + body dofs x body steps per frame.
         cores: cores the process may run on (:func:`available_cores`).
+        shell: whether the scene has a shell.
 
     """
-    if threads or work < RANKS_FROM_WORK:
+    if threads or work < (RANKS_FROM_WORK if shell else RANKS_FROM_BODY_WORK):
         return 1
     return max(1, min(cores, work // WORK_PER_RANK))
 

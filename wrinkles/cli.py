@@ -12,10 +12,11 @@ cell, energy terms, parameters - which is also printed on stderr as one ``diagno
 line) or an unexpected exception (a bug: its traceback is printed).
 
 A ``wrinkles run`` started without ``mpiexec`` on a frame of
-:data:`solvers.solver_choice.RANKS_FROM_WORK` shell vertices and body dof steps or more,
+:data:`solvers.solver_choice.RANKS_FROM_WORK` shell vertices and body dof steps or more
+(:data:`~solvers.solver_choice.RANKS_FROM_BODY_WORK` body dof steps without a shell),
 threads left to the code, replaces itself by ``mpiexec -n N wrinkles run ...`` on the
-machine's cores (:func:`command_ranks`; one line says so; ``--set shell.solver.threads=1``
-keeps one process).
+machine's cores (:func:`command_ranks`, before the FE stack loads; one line says so; ``--set
+shell.solver.threads=1`` or ``mpiexec -n 1`` keeps one process).
 Under MPI every rank runs the same code, split over the ranks; a one-way scene on two ranks may
 instead overlap its body and shell stages, one rank each (:mod:`wrinkles.overlap`, chosen by
 ``shell.solver.layout``). Errors raised on all ranks (scene validation, mesh
@@ -155,9 +156,9 @@ def command_ranks(scene: Scene, sizes: Callable[[], Sizes] | None = None) -> tup
     """Ranks a serial ``wrinkles run`` of ``scene`` runs on, and why (1: this process).
 
     More than one only for a process no MPI launcher started, with the wheel's ``mpiexec``
-    beside the interpreter, a scene with a shell whose frame work (shell vertices + body
-    dofs x steps) :func:`solvers.solver_choice.choose_ranks` gives ranks for; an
-    ``"overlap"`` layout takes two. ``sizes`` counts the unknowns (default:
+    beside the interpreter, and a frame whose work (shell vertices + body dofs x steps; a
+    body-only scene's body alone) :func:`solvers.solver_choice.choose_ranks` gives ranks
+    for; an ``"overlap"`` layout takes two. ``sizes`` counts the unknowns (default:
     :func:`wrinkles.overlap.scene_sizes`, a read of the mesh), called only when some size
     would give ranks.
     """
@@ -165,17 +166,18 @@ def command_ranks(scene: Scene, sizes: Callable[[], Sizes] | None = None) -> tup
     from wrinkles.overlap import scene_sizes
 
     shell = scene.shell
-    if shell is None or under_launcher(os.environ) or mpiexec_beside() is None:
+    if under_launcher(os.environ) or mpiexec_beside() is None:
         return 1, ""
     cores = available_cores()
-    if choose_ranks(shell.solver.threads, sys.maxsize, cores) == 1:  # no size would go
+    threads = shell.solver.threads if shell is not None else 0
+    if choose_ranks(threads, sys.maxsize, cores) == 1:  # no size would go
         return 1, ""
     size = (sizes or (lambda: scene_sizes(scene)))()
-    ranks = choose_ranks(shell.solver.threads, size.work, cores)
-    if shell.solver.layout == "overlap":
+    ranks = choose_ranks(threads, size.work, cores, shell=shell is not None)
+    if shell is not None and shell.solver.layout == "overlap":
         ranks = min(ranks, 2)
-    return ranks, (f"{size.shell_vertices} shell vertices + {size.body_dofs} body dofs x "
-                   f"{size.steps} step(s), {cores} cores")
+    body = f"{size.body_dofs} body dofs x {size.steps} step(s), {cores} cores"
+    return ranks, body if shell is None else f"{size.shell_vertices} shell vertices + {body}"
 
 
 @contextlib.contextmanager
@@ -240,15 +242,15 @@ def command_check(args: argparse.Namespace) -> int:
                                 "newton": dataclasses.asdict(scene.newton.internals)}
     if scene.rigid is not None:
         resolved["rigid"] = dataclasses.asdict(scene.rigid.internals.coupling)
+    sizes = functools.cache(lambda: scene_sizes(scene))  # one read of the mesh for all
+    resolved["ranks_of_a_serial_run"] = command_ranks(scene, sizes)[0]
     if scene.shell is not None:
         caps = flip_caps(boundary_surface(mesh.points, mesh.tets))
         resolved["shell"] = shell_report(scene.shell, scene.material, caps.surface.vertices,
                                          caps.surface.faces,
                                          static=scene.body.dynamics == "static")
         resolved["shell"]["cap_flips"] = caps.flips
-        sizes = functools.cache(lambda: scene_sizes(scene))  # one read of the mesh for both
         resolved["shell"]["layout_on_2_ranks"] = layout_for(scene, 2, sizes)
-        resolved["shell"]["ranks_of_a_serial_run"] = command_ranks(scene, sizes)[0]
         if scene.shell.monolithic_two_way:
             split = choose_joint_split(2, resolved["shell"]["vertices"],
                                        resolved["shell"]["solver"]["method"])

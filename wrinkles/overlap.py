@@ -109,14 +109,18 @@ class Sizes:
 
 
 def scene_sizes(scene: Scene) -> Sizes:
-    """Read or build the scene's mesh (serial, its warnings silenced) and count the unknowns."""
-    assert scene.shell is not None
+    """Read or build the scene's mesh (serial, its warnings silenced) and count the unknowns.
+
+    A scene without a shell has no shell vertices.
+    """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         tet = read_tet_mesh(scene.mesh)
-    faces = boundary_surface(tet.points, tet.tets).faces.shape[0]
-    return Sizes(body_dofs(tet, scene.body.degree), scene.time.steps_per_frame,
-                 shell_vertices(faces, scene.shell.subdivision.levels))
+    vertices = 0
+    if scene.shell is not None:
+        faces = boundary_surface(tet.points, tet.tets).faces.shape[0]
+        vertices = shell_vertices(faces, scene.shell.subdivision.levels)
+    return Sizes(body_dofs(tet, scene.body.degree), scene.time.steps_per_frame, vertices)
 
 
 def body_dofs(tet: TetMesh, degree: int) -> int:

@@ -11,6 +11,7 @@ from solvers.solver_choice import (
     MULTIGRID_FROM_VERTICES,
     MULTIGRID_STATIC_FROM_LEVELS,
     PHASE_SPACE_FROM_VERTICES,
+    RANKS_FROM_BODY_WORK,
     RANKS_FROM_WORK,
     THREADS_FROM_VERTICES,
     WORK_PER_RANK,
@@ -98,6 +99,17 @@ def test_a_serial_command_of_a_large_frame_takes_the_cores_as_ranks(work, cores,
     bar 3 126, the bunny's drop 68 574, the bar at 4 levels 42 246)."""
     assert RANKS_FROM_WORK // WORK_PER_RANK == 2
     assert choose_ranks(0, work, cores) == expected
+
+
+@pytest.mark.parametrize(("work", "expected"), [
+    (10938, 1), (12606, 1), (RANKS_FROM_BODY_WORK - 1, 1), (RANKS_FROM_BODY_WORK, 2),
+    (27030, 2), (56040, 2)])
+def test_a_body_alone_takes_ranks_from_a_larger_frame(work, expected):
+    """The external meshes dropped without a skin (docs/notes/solver-choice.md): the elbow
+    (5 469 dofs x 2) and the plate (6 303 x 2) stay, the ball (13 515 x 2) and the bunny
+    (14 010 x 4) go; with a shell the same frames would go."""
+    assert choose_ranks(0, work, 2, shell=False) == expected
+    assert choose_ranks(0, work, 2) == 2
 
 
 def test_named_threads_keep_one_process():

@@ -57,6 +57,21 @@ def test_a_large_body_under_a_small_shell_takes_two_ranks(two_cores, tmp_path):
     assert cli.command_ranks(load_scene(REPO / "scenes" / "elbow_closing.toml"))[0] == 1
 
 
+@pytest.mark.skipif(not EXTERNAL_MESHES.is_dir(), reason="../shared/meshes_external missing")
+def test_a_large_body_without_a_shell_takes_two_ranks(two_cores, tmp_path):
+    """The cinolib ball dropped without its skin (13 515 body dofs x 2 steps) goes, by the same
+    work as under a shell; the falling block (1 260 x 1) stays; `wrinkles check` says so."""
+    text = load_script(REPO / "benchmarks" / "external_meshes.py").scene_text(
+        EXTERNAL_MESHES / "cinolib_sphere.mesh", "z", 4)
+    path = tmp_path / "ball.toml"
+    path.write_text(text[:text.index("[shell]")])
+    ball = load_scene(path)
+    assert ball.shell is None
+    assert cli.command_ranks(ball) == (2, "13515 body dofs x 2 step(s), 2 cores")
+    assert cli.command_ranks(load_scene(REPO / "scenes" / "drop_block.toml"))[0] == 1
+    assert cli.STAY_SERIAL[True].startswith("mpiexec -n 1")  # no shell key to name
+
+
 def test_named_threads_or_a_launcher_keep_one_process_a_two_way_shell_goes(two_cores,
                                                                            monkeypatch):
     assert cli.command_ranks(scene("shell.subdivision.levels=3",

@@ -7,8 +7,8 @@ in magenta the faces passing through another face at the last step (``self_inter
 shows the body as a translucent surface, the rigid balls of ``balls.xdmf`` as spheres of their
 radius, and jumps to the last time step. Open it with ``paraview --script=RUN/view.py``, or
 ``pvpython RUN/view.py`` to write ``RUN/view.png`` without a window (on a machine without a
-display, ``xvfb-run -a pvpython RUN/view.py``: a ParaView built for on-screen rendering, as
-Debian's, needs an X server even for ``pvpython``).
+display, ``xvfb-run -a -s -noreset pvpython RUN/view.py``, :data:`HEADLESS`: a ParaView built
+for on-screen rendering, as Debian's, needs an X server even for ``pvpython``).
 
 ``--pvd`` also writes ``RUN/vtk/{body,shell,balls}.pvd`` with one ``.vtu`` per step whose
 points are already deformed (``displacement`` and the other fields kept as point data), for
@@ -34,11 +34,19 @@ from wrinkles.shell_output import SHELL_XDMF_NAME, read_shell_series
 VIEW_SCRIPT = "view.py"
 PVD_DIR = "vtk"
 
+HEADLESS: tuple[str, ...] = ("xvfb-run", "-a", "-s", "-noreset", "pvpython")
+"""The command prefix that runs ``view.py`` without a display: a virtual X server that does not
+reset. By default Xvfb resets when its last client disconnects and drops a client connecting
+meanwhile; ``pvpython`` closes its first connection and opens another, which then fails
+("bad X server connection", SIGABRT) in a third to a half of the runs on a 2-core machine
+(ParaView 5.11, Debian 12; docs/notes/paraview-headless.md). ``-s`` replaces xvfb-run's
+default server arguments (an 8-bit screen) by Xvfb's own defaults (24-bit) and ``-noreset``."""
+
 SCRIPT = '''"""ParaView view of a wrinkles run (written by `wrinkles view`).
 
     paraview --script={run}/view.py     # interactive
     pvpython {run}/view.py              # writes {run}/view.png
-    xvfb-run -a pvpython {run}/view.py  # the same without a display
+    xvfb-run -a -s -noreset pvpython {run}/view.py  # the same without a display
 """
 import os
 from paraview.simple import *  # noqa: F403
@@ -220,7 +228,7 @@ def command_view(args: argparse.Namespace) -> int:
     """Run the ``view`` sub-command; return the exit code."""
     script = write_view_script(args.out)
     print(f"wrote {script}: open it with  paraview --script={script}  (or pvpython {script} "
-          f"for {args.out / 'view.png'}; without a display: xvfb-run -a pvpython {script})",
+          f"for {args.out / 'view.png'}; without a display: {' '.join(HEADLESS)} {script})",
           flush=True)
     if args.pvd:
         for path in export_pvd(args.out):

@@ -14,6 +14,7 @@ import pytest
 from support import REPO, SCENE, folded_plate, wrinkles
 
 from wrinkles.rigid_output import read_balls
+from wrinkles.view import HEADLESS
 
 BALL_SOFA = ("--frames", "4", "--set", "shell.subdivision.levels=0", "--set", "output.render=true")
 
@@ -165,7 +166,7 @@ def test_view_script_runs_in_pvpython(sofa):
     """ParaView 5.11 (Debian) runs the script and writes view.png (under a virtual display)."""
     proc = wrinkles("view", str(sofa))
     assert proc.returncode == 0, proc.stderr
-    run = subprocess.run(["xvfb-run", "-a", "pvpython", str(sofa / "view.py")],
+    run = subprocess.run([*HEADLESS, str(sofa / "view.py")],
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
     assert (sofa / "view.png").stat().st_size > 10_000
@@ -197,7 +198,7 @@ def test_view_script_marks_self_intersecting_faces_in_pvpython(tmp_path):
     series.write(ShellFrame(1.0, x - rest, np.full(len(x), 1e-3), crossing))
     proc = wrinkles("view", str(tmp_path))
     assert proc.returncode == 0, proc.stderr
-    run = subprocess.run(["xvfb-run", "-a", "pvpython", str(tmp_path / "view.py")],
+    run = subprocess.run([*HEADLESS, str(tmp_path / "view.py")],
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
     assert "self-intersecting faces at the last step" in run.stdout

@@ -58,11 +58,6 @@ def load_stack() -> None:
     PETSc.Options().setValue("options_left", "0")
 
 
-def is_loaded() -> bool:
-    """Whether this process has loaded the stack (and so initialised MPI)."""
-    return load_stack.cache_info().currsize > 0
-
-
 class _OnFirstUse:
     """Stand-in for a module of the stack: the first attribute read loads the stack."""
 
@@ -88,7 +83,7 @@ if not TYPE_CHECKING:
     dolfinx = _OnFirstUse("dolfinx")
     ufl = _OnFirstUse("ufl")
 
-__all__ = ["MPI", "PETSc", "basix", "dolfinx", "ufl", "begin_petsc_log", "is_loaded", "load_stack",
+__all__ = ["MPI", "PETSc", "basix", "dolfinx", "ufl", "begin_petsc_log", "load_stack",
            "mesh_from_arrays",
            "vector_space", "is_affine", "global_scalar", "quadrature_expression",
            "global_min_on_cells", "exterior_facet_domain", "with_facet_domains",

@@ -59,7 +59,11 @@ def load_stack() -> None:
 
 
 class _OnFirstUse:
-    """Stand-in for a module of the stack: the first attribute read loads the stack."""
+    """Stand-in for a module of the stack: the first attribute read loads the stack.
+
+    Each attribute read is kept on the stand-in, so later reads cost a plain attribute
+    lookup (the modules' classes, functions and constants do not change once imported).
+    """
 
     def __init__(self, name: str) -> None:
         self.__dict__["_name"] = name
@@ -70,7 +74,8 @@ class _OnFirstUse:
         if module is None:
             load_stack()
             module = self.__dict__["_module"] = importlib.import_module(self._name)
-        return getattr(module, attr)
+        value = self.__dict__[attr] = getattr(module, attr)
+        return value
 
     def __repr__(self) -> str:
         return f"<module {self._name!r}, loaded on first use>"

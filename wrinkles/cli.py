@@ -121,7 +121,7 @@ def command_run(args: argparse.Namespace) -> int:
         ranks, why = command_ranks(scene)
         if ranks > 1:
             print(f"wrinkles: {why}: running on {ranks} MPI ranks (mpiexec -n {ranks}; "
-                  f"{STAY_SERIAL[scene.shell is None]} keeps one process)", flush=True)
+                  f"{one_process(scene)} keeps one process)", flush=True)
             relaunch_on_ranks(ranks, args.command_line)
     for warning in said:
         warnings.warn_explicit(warning.message, warning.category, warning.filename,
@@ -147,9 +147,14 @@ def command_run(args: argparse.Namespace) -> int:
     return 0
 
 
-STAY_SERIAL: dict[bool, str] = {False: "--set shell.solver.threads=1",
-                                True: "mpiexec -n 1 wrinkles run ..."}
-"""How to keep a serial run in one process, for a scene with a shell (False) or without."""
+def one_process(scene: Scene) -> str:
+    """Return how a user keeps a serial run of ``scene`` in one process.
+
+    The shell's threads key, else (a body alone has no solver key for it) a launcher of one
+    rank.
+    """
+    return "mpiexec -n 1 wrinkles run ..." if scene.shell is None \
+        else "--set shell.solver.threads=1"
 
 
 def command_ranks(scene: Scene, sizes: Callable[[], Sizes] | None = None) -> tuple[int, str]:

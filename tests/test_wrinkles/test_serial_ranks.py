@@ -69,7 +69,8 @@ def test_a_large_body_without_a_shell_takes_two_ranks(two_cores, tmp_path):
     assert ball.shell is None
     assert cli.command_ranks(ball) == (2, "13515 body dofs x 2 step(s), 2 cores")
     assert cli.command_ranks(load_scene(REPO / "scenes" / "drop_block.toml"))[0] == 1
-    assert cli.STAY_SERIAL[True].startswith("mpiexec -n 1")  # no shell key to name
+    assert cli.one_process(ball) == "mpiexec -n 1 wrinkles run ..."  # no shell key to name
+    assert cli.one_process(scene()) == "--set shell.solver.threads=1"
 
 
 def test_named_threads_or_a_launcher_keep_one_process_a_two_way_shell_goes(two_cores,

@@ -58,7 +58,7 @@ def test_a_large_body_under_a_small_shell_takes_two_ranks(two_cores, tmp_path):
 
 
 @pytest.mark.skipif(not EXTERNAL_MESHES.is_dir(), reason="../shared/meshes_external missing")
-def test_a_large_body_without_a_shell_takes_two_ranks(two_cores, tmp_path):
+def test_a_large_body_without_a_shell_takes_two_ranks(two_cores, tmp_path, capsys):
     """The cinolib ball dropped without its skin (13 515 body dofs x 2 steps) goes, by the same
     work as under a shell; the falling block (1 260 x 1) stays; `wrinkles check` says so."""
     text = load_script(REPO / "benchmarks" / "external_meshes.py").scene_text(
@@ -71,6 +71,9 @@ def test_a_large_body_without_a_shell_takes_two_ranks(two_cores, tmp_path):
     assert cli.command_ranks(load_scene(REPO / "scenes" / "drop_block.toml"))[0] == 1
     assert cli.one_process(ball) == "mpiexec -n 1 wrinkles run ..."  # no shell key to name
     assert cli.one_process(scene()) == "--set shell.solver.threads=1"
+    capsys.readouterr()
+    assert cli.main(["check", str(path)]) == 0
+    assert json.loads(capsys.readouterr().out)["resolved"]["ranks_of_a_serial_run"] == 2
 
 
 def test_named_threads_or_a_launcher_keep_one_process_a_two_way_shell_goes(two_cores,

@@ -9,6 +9,8 @@ SCENE   ?= scenes/ball_sofa_coarse.toml
 # the demo's ranks: 2 where the machine has 2 cores (its body and shell stages overlap), else 1
 RANKS   ?= $(shell [ "$$(nproc 2>/dev/null || echo 1)" -ge 2 ] && echo 2 || echo 1)
 PYTEST_ARGS ?=
+# the suite's workers (pytest-xdist), one per core; a module's cases stay on one worker
+TEST_JOBS ?= $(shell nproc 2>/dev/null || echo 1)
 export OMP_NUM_THREADS ?= 1
 export OPENBLAS_NUM_THREADS ?= 1
 export NUMBA_CACHE_DIR ?= $(CURDIR)/.cache/numba
@@ -32,10 +34,10 @@ demo: $(STAMP)
 	$(VENV)/bin/wrinkles plot $(OUT)
 
 test: $(STAMP)
-	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
+	$(PY) -m pytest -m "not slow" -n $(TEST_JOBS) --dist loadscope $(PYTEST_ARGS)
 
 test-all: $(STAMP)
-	$(PY) -m pytest $(PYTEST_ARGS)
+	$(PY) -m pytest -n $(TEST_JOBS) --dist loadscope $(PYTEST_ARGS)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check models solvers meshes wrinkles validation tests benchmarks paper tools

@@ -8,13 +8,11 @@ tools/scene_keys.py [--list]``.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
-import sys
 import types
 import typing
 from collections import Counter
-
-import dolfinx_solver  # noqa: F401  (first, as everywhere)
 
 from wrinkles.scene import Scene
 
@@ -42,7 +40,10 @@ def leaves(cls: type, prefix: str = "") -> list[str]:
 
 
 if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description="Count the scene's user-facing keys.")
+    parser.add_argument("--list", action="store_true", help="print every key, one per line")
+    args = parser.parse_args()
     keys = leaves(Scene)
     print(len(keys), "keys;", dict(Counter(k.split(".")[0].split("[")[0] for k in keys)))
-    if "--list" in sys.argv:
+    if args.list:
         print("\n".join(keys))

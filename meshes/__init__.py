@@ -12,24 +12,31 @@ The builders import gmsh lazily (on first access), so loading a file does not lo
 
 from __future__ import annotations
 
+import importlib
+import sys
+import types
 from typing import TYPE_CHECKING, Any
-
-from meshes.loader import load
-from meshes.structured import structured_box
-from meshes.tetmesh import (
-    TetMesh,
-    boundary_faces_with_cells,
-    boundary_surface,
-    boundary_triangles,
-    tet_components,
-    tet_volumes,
-)
-from meshes.validate import MeshWarning, ValidationOptions, validate
 
 if TYPE_CHECKING:
     from meshes.builders import SofaDimensions, box, cylinder, sofa, sofa_parts, sphere
+    from meshes.loader import load
+    from meshes.structured import structured_box
+    from meshes.tetmesh import (
+        TetMesh,
+        boundary_faces_with_cells,
+        boundary_surface,
+        boundary_triangles,
+        tet_components,
+        tet_volumes,
+    )
+    from meshes.validate import MeshWarning, ValidationOptions, validate
 
-_BUILDERS = {"box", "cylinder", "sphere", "sofa", "sofa_parts", "SofaDimensions"}
+_HOME = {"load": "loader", "structured_box": "structured", "MeshWarning": "validate",
+         "ValidationOptions": "validate", "validate": "validate"} | dict.fromkeys(
+    ("TetMesh", "boundary_faces_with_cells", "boundary_surface", "boundary_triangles",
+     "tet_components", "tet_volumes"), "tetmesh") | dict.fromkeys(
+    ("box", "cylinder", "sphere", "sofa", "sofa_parts", "SofaDimensions"), "builders")
+"""The module of each public name: imported on the name's first use."""
 
 __all__ = [
     "MeshWarning",
@@ -53,9 +60,32 @@ __all__ = [
 
 
 def __getattr__(name: str) -> Any:
-    """Import the gmsh builders on first use (PEP 562)."""
-    if name in _BUILDERS:
-        from meshes import builders
+    """Import a public name's module on first use (PEP 562).
 
-        return getattr(builders, name)
+    ``import meshes.errors`` (every layer's error types) then loads neither meshio, scipy nor
+    gmsh; the loader and the tet mesh load them when first used, the builders gmsh.
+    """
+    if name in _HOME:
+        value = getattr(importlib.import_module(f"meshes.{_HOME[name]}"), name)
+        globals()[name] = value
+        return value
     raise AttributeError(f"module 'meshes' has no attribute {name!r}")
+
+
+class _Package(types.ModuleType):
+    """The package's module type: a public name is never shadowed by its own submodule.
+
+    Python binds a submodule to its package's attribute when the submodule first loads, so
+    ``meshes.validate`` (the function) would become the module ``meshes.validate`` wherever
+    that module loaded first; the function stays bound instead.
+    """
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        """Bind ``value``, or the public name of that name's own submodule ``value``."""
+        if isinstance(value, types.ModuleType) and value.__name__ == f"{__name__}.{name}" \
+                and _HOME.get(name) == name:
+            value = getattr(value, name)
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package

@@ -26,13 +26,13 @@ import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import h5py
 import numpy as np
 
 from meshes.errors import InputError
 from models.backend import MPI
-from models.shell.self_intersection import vertex_flags
 from wrinkles.collective import on_root
 from wrinkles.output import (
     WORK_DIR,
@@ -43,7 +43,9 @@ from wrinkles.output import (
     step_file,
     write_text_atomic,
 )
-from wrinkles.shell_setup import Shell
+
+if TYPE_CHECKING:
+    from wrinkles.shell_setup import Shell
 
 SHELL_XDMF_NAME = "shell.xdmf"
 FIELD_TYPES: dict[str, str] = {"bending_energy_density": "Scalar", "displacement": "Vector",
@@ -247,6 +249,8 @@ Writer = Callable[[int, float], None]
 
 def shell_frame(shell: Shell, t: float) -> ShellFrame:
     """Return the output fields of the current state."""
+    from models.shell.self_intersection import vertex_flags  # numba: a writer's, not a reader's
+
     crossing = vertex_flags(shell.topology.faces, shell.intersecting_faces(), shell.rest.shape[0])
     return ShellFrame(t, shell.x - shell.rest, shell.energy.bending_density(shell.x), crossing)
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 
 import pytest
 from support import DEFAULT_SCENE, DROP_BLOCK, SCENE, wrinkles
@@ -188,3 +190,22 @@ def test_a_set_key_that_adds_a_shell_to_a_body_only_scene_is_warned_about(tmp_pa
     assert json.loads(proc.stdout)["scene"]["shell"] is not None
     quiet = wrinkles("check", str(DEFAULT_SCENE), "--set", "shell.imperfection_seed=2")
     assert quiet.returncode == 0 and "no [shell] table" not in quiet.stderr
+
+
+LIGHT_CLI = """
+import sys
+from wrinkles.cli import build_parser
+build_parser()
+heavy = ("numba", "scipy", "gmsh", "dolfinx", "mpi4py", "petsc4py", "pyvista", "matplotlib")
+print(sorted(m for m in heavy if m in sys.modules))
+"""
+
+
+def test_the_cli_starts_without_the_solvers_stack():
+    """``wrinkles --help``, ``view``, ``plot`` and ``render`` parse their arguments before any
+    of numba, scipy, gmsh, the FE stack or the plotting libraries loads (each command loads
+    what it uses)."""
+    done = subprocess.run([sys.executable, "-c", LIGHT_CLI], capture_output=True, text=True,
+                          timeout=300, check=False)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"

@@ -211,10 +211,15 @@ def options_up(options: RenderOptions) -> str:
 
 
 def write_gif(pngs: Sequence[Path], path: Path, options: RenderOptions) -> None:
-    """Assemble PNG frames into an animated GIF with Pillow (looping)."""
+    """Assemble PNG frames into an animated GIF with Pillow (looping).
+
+    Each frame gets its own 256-colour palette by Pillow's fast octree quantiser (the PNGs
+    are the full-colour pictures; the GIF is their preview).
+    """
     from PIL import Image
 
-    images = [Image.open(p).convert("P", palette=Image.Palette.ADAPTIVE) for p in pngs]
+    images = [Image.open(p).convert("RGB").quantize(256, method=Image.Quantize.FASTOCTREE)
+              for p in pngs]
     images[0].save(path, save_all=True, append_images=images[1:], duration=options.gif_ms,
                    loop=0)
 

@@ -7,7 +7,8 @@
 - :func:`structured_box`: gmsh-free Freudenthal-Kuhn box mesh (regular, 6 tets per cell).
 - :func:`boundary_triangles`, :func:`boundary_surface`: the outward boundary surface.
 
-The builders import gmsh lazily (on first access), so loading a file does not load gmsh.
+Each name's module loads on the name's first use (PEP 562): ``meshes.errors``, which every
+layer imports, loads neither meshio, scipy nor gmsh; loading a file does not load gmsh.
 """
 
 from __future__ import annotations

@@ -79,7 +79,7 @@ def main() -> dict[str, Any]:
                 if code != "this":
                     drop_worktree(path)
     print(f"{'command':>10} {'code':>10} {'median s':>9} {'min s':>7} {'max s':>7}")
-    for name in commands(scene, Path()):
+    for name in times["this"]:
         for code in codes:
             t = times[code][name]
             print(f"{name:>10} {code:>10} {statistics.median(t):9.2f} {min(t):7.2f} "
